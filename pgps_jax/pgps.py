@@ -1,0 +1,215 @@
+"""PGPS: TrainState, init, generation_step and evaluate (Algorithm 1).
+
+Everything that changes lives in one TrainState pytree; the configuration and the env are
+static and bound by the `make_*` factories, so `generation_step(state)` is one pure function
+that can be jitted once (state donated) or vmapped over a batch of states (seeds).
+
+One generation (Algorithm 1, lines 6-37):
+ 1. population: slot 0 = elite, the rest ~ N(μ, Σ); after T_start-Q total steps the slots
+    [N/2, N) are the best of SR·N samples by the critic (Algorithm 2); every F generations the
+    TD3 actor takes slot N−1 (PG→EA).
+ 2. every actor plays one episode of at most T steps (eq. 4); real transitions enter the buffer.
+ 3. CEM update with the returns (maximised); elite = best actor of this generation.
+ 4. TD3 trains for as many updates as the generation's env steps, in 5 blocks; if the TD3 actor
+    fell behind (return < mean − std of the population), with the augmented loss toward the
+    elite and an adaptive β (EA→PG, eq. 2-3).
+"""
+
+import functools
+from typing import Callable
+
+import chex
+import jax
+import jax.numpy as jnp
+from brax.envs.base import Env
+
+from pgps_jax import buffer as replay
+from pgps_jax import cem, qfilter
+from pgps_jax.config import PGPSConfig
+from pgps_jax.networks import actor_flattener, flatten
+from pgps_jax.rollout import random_warmup, run_episodes
+from pgps_jax.td3 import TD3, TD3State
+
+
+@chex.dataclass(frozen=True)
+class TrainState:
+    cem: cem.CEMState            # μ, Σ, damping, elite (flat actor vectors [P])
+    td3: TD3State                # actor, twin critic, targets, optimiser states
+    buffer: replay.BufferState   # device replay buffer
+    beta: jax.Array              # [] distance weight β of L^A (eq. 2-3), persists
+    generation: jax.Array        # [] int32 generations completed
+    total_steps: jax.Array       # [] int32 env steps so far, warm-up included
+    key: jax.Array               # PRNG key
+
+
+def episode_limit(total_steps: jax.Array, config: PGPSConfig) -> jax.Array:
+    """Eq. 4 with floor division: T = min(T_init + 100·⌊steps / T_interval⌋, T_max)."""
+    if not config.increasing_steps:
+        return jnp.asarray(config.t_max, jnp.int32)
+    grown = config.t_init + config.t_increment * (total_steps // config.t_interval)
+    return jnp.minimum(grown, config.t_max).astype(jnp.int32)
+
+
+def fell_behind(td3_return: jax.Array, population_returns: jax.Array) -> jax.Array:
+    """The TD3 actor lags: Return_TD3 < mean − std of the generation's returns (Algorithm 1)."""
+    return td3_return < jnp.mean(population_returns) - jnp.std(population_returns)
+
+
+def _policy(td3: TD3, unflatten: Callable) -> Callable:
+    """(flat actor vector, obs) -> action."""
+    return lambda flat, obs: td3.actor_net.apply(unflatten(flat), obs)
+
+
+def _parts(config: PGPSConfig, env: Env) -> tuple[TD3, Callable]:
+    td3 = TD3(config, env.observation_size, env.action_size)
+    _, unflatten = actor_flattener(td3.actor_net, env.observation_size)
+    return td3, unflatten
+
+
+def init(config: PGPSConfig, env: Env, key: jax.Array) -> TrainState:
+    """Fresh TD3, μ = the TD3 actor's parameters, and a buffer filled by the random warm-up."""
+    td3, _ = _parts(config, env)
+    td3_key, warmup_key, next_key = jax.random.split(key, 3)
+    td3_state = td3.init(td3_key)
+    buffer = replay.init(config.buffer_size, env.observation_size, env.action_size)
+    total_steps = 0
+    if config.warmup_steps > 0:
+        steps_per_env = -(-config.warmup_steps // config.pop_size)
+        transitions, valid = random_warmup(env, warmup_key, config.pop_size, steps_per_env,
+                                           config.t_max)
+        buffer = replay.add(buffer, transitions, valid)
+        total_steps = steps_per_env * config.pop_size
+    return TrainState(cem=cem.init(flatten(td3_state.actor), config.sigma_init),
+                      td3=td3_state, buffer=buffer,
+                      beta=jnp.asarray(config.beta_init, jnp.float32),
+                      generation=jnp.zeros((), jnp.int32),
+                      total_steps=jnp.asarray(total_steps, jnp.int32), key=next_key)
+
+
+def _population(config: PGPSConfig, td3: TD3, unflatten: Callable, state: TrainState,
+                sample_key: jax.Array, candidate_key: jax.Array,
+                states_key: jax.Array) -> jax.Array:
+    """Algorithm 1 lines 6-10 and Algorithm 2: the N actors to evaluate, [N, P]."""
+    n, half = config.pop_size, config.pop_size // 2
+    population = cem.ask(sample_key, state.cem, n).at[0].set(state.cem.elite)
+    if not config.q_filter:
+        return population
+
+    def filtered(population):
+        candidates = cem.ask(candidate_key, state.cem, config.num_candidates)
+        states = replay.sample_obs(state.buffer, states_key, config.ss1_size)
+        q1 = lambda critic, obs, action: td3.critic_net.apply(critic, obs, action)[0]
+        scores = qfilter.potentials(_policy(td3, unflatten), q1, candidates,
+                                    state.td3.critic, states)
+        return population.at[half:].set(
+            qfilter.select_best(candidates, scores, config.num_elite_filtered))
+
+    return jax.lax.cond(state.total_steps >= config.q_filter_start, filtered,
+                        lambda population: population, population)
+
+
+def generation_step(config: PGPSConfig, env: Env,
+                    state: TrainState) -> tuple[TrainState, dict]:
+    """One generation of Algorithm 1. Pure; bind config/env with `make_generation_step`."""
+    td3, unflatten = _parts(config, env)
+    (sample_key, candidate_key, states_key, reset_key, train_key,
+     next_key) = jax.random.split(state.key, 6)
+    n = config.pop_size
+    generation = state.generation + 1
+    td3_turn = (generation % config.td3_to_cem_period) == 0
+
+    population = _population(config, td3, unflatten, state, sample_key, candidate_key,
+                             states_key)
+    td3_flat = flatten(state.td3.actor)
+    if config.pg_guides_ea:
+        population = jnp.where(td3_turn, population.at[n - 1].set(td3_flat), population)
+    limit = episode_limit(state.total_steps, config)
+    actors, limits = population, jnp.full((n,), limit)
+    if config.td3_probe:
+        actors = jnp.concatenate([population, td3_flat[None]])
+        limits = jnp.append(limits, jnp.where(td3_turn, limit, 0))
+    episodes = run_episodes(env, _policy(td3, unflatten), actors,
+                            jax.random.split(reset_key, actors.shape[0]), limits, config.t_max)
+    buffer = replay.add(state.buffer, episodes.transitions, episodes.valid)
+    interaction_steps = episodes.lengths.sum()
+
+    returns = episodes.returns[:n]
+    new_cem = cem.tell(state.cem, population, returns, top_k=config.top_k,
+                       sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
+                       divide_by_k=config.cem_divide_by_k)
+    td3_in_episodes = config.pg_guides_ea or config.td3_probe
+    td3_return = episodes.returns[n - 1 if config.pg_guides_ea else n] if td3_in_episodes else jnp.nan
+    if config.ea_guides_pg:
+        guided = td3_turn & fell_behind(td3_return, returns)
+    else:
+        guided = jnp.zeros((), bool)
+
+    num_update = interaction_steps // config.update_blocks
+    new_td3, beta, losses = td3.train(state.td3, buffer, train_key, num_update,
+                                      unflatten(new_cem.elite), guided, state.beta)
+    new_state = TrainState(cem=new_cem, td3=new_td3, buffer=buffer, beta=beta,
+                           generation=generation, total_steps=state.total_steps + interaction_steps,
+                           key=next_key)
+    metrics = {
+        "gen/generation": generation,
+        "gen/total_steps": new_state.total_steps,
+        "gen/episode_limit": limit,
+        "gen/interaction_steps": interaction_steps,
+        "gen/q_filter_active": (state.total_steps >= config.q_filter_start) & config.q_filter,
+        "pop/return_mean": jnp.mean(returns),
+        "pop/return_std": jnp.std(returns),
+        "pop/return_max": jnp.max(returns),
+        "pop/unstable_episodes": episodes.unstable.sum(),
+        "cem/elite_return": jnp.max(returns),
+        "cem/var_mean": jnp.mean(new_cem.var),
+        "cem/damping": new_cem.damping,
+        "td3/in_population": td3_turn & td3_in_episodes,
+        "td3/return": jnp.where(td3_turn, td3_return, jnp.nan),
+        "td3/fell_behind": guided,
+        "td3/beta": beta,
+        **{f"pop/return_{i}": returns[i] for i in range(n)},
+        **losses,
+    }
+    return new_state, metrics
+
+
+def evaluate(config: PGPSConfig, env: Env, state: TrainState, key: jax.Array) -> dict:
+    """Deterministic test episodes (Section 5.1) of μ, the TD3 actor and the elite.
+
+    Each plays `eval_episodes` episodes of `eval_steps` steps from the start states drawn
+    from `key` (pass the same key every time, e.g. PRNGKey(seed + 100)); all run in one batch.
+    Returns per-episode returns [E] and their mean/std per policy.
+    """
+    td3, unflatten = _parts(config, env)
+    e = config.eval_episodes
+    policies = {"mu": state.cem.mean, "td3": flatten(state.td3.actor), "elite": state.cem.elite}
+    actors = jnp.repeat(jnp.stack(list(policies.values())), e, axis=0)
+    reset_keys = jnp.tile(jax.random.split(key, e), (len(policies), 1))
+    episodes = run_episodes(env, _policy(td3, unflatten), actors, reset_keys,
+                            jnp.full((actors.shape[0],), config.eval_steps), config.eval_steps,
+                            record=False)
+    metrics = {}
+    for i, name in enumerate(policies):
+        returns = episodes.returns[i * e:(i + 1) * e]
+        metrics[f"eval/{name}_returns"] = returns
+        metrics[f"eval/{name}_mean"] = jnp.mean(returns)
+        metrics[f"eval/{name}_std"] = jnp.std(returns)
+    return metrics
+
+
+def make_init(config: PGPSConfig, env: Env) -> Callable[[jax.Array], TrainState]:
+    """Jitted `init` bound to `config` and `env`: key -> TrainState."""
+    return jax.jit(functools.partial(init, config, env))
+
+
+def make_generation_step(config: PGPSConfig, env: Env,
+                         donate: bool = True) -> Callable[[TrainState], tuple[TrainState, dict]]:
+    """Jitted `generation_step` bound to `config` and `env`; the state is donated by default,
+    so the replay buffer is updated in place (do not reuse the state you pass in)."""
+    return jax.jit(functools.partial(generation_step, config, env),
+                   donate_argnums=(0,) if donate else ())
+
+
+def make_evaluate(config: PGPSConfig, env: Env) -> Callable[[TrainState, jax.Array], dict]:
+    """Jitted `evaluate` bound to `config` and `env`: (state, key) -> metrics."""
+    return jax.jit(functools.partial(evaluate, config, env))

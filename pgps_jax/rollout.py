@@ -1,0 +1,124 @@
+"""Episodes of a batch of deterministic actors, and the random-action warm-up.
+
+`run_episodes` plays one episode per actor (Algorithm 3, vmapped over the batch): each lasts
+until the task terminates it or it reaches its step limit, with no auto-reset. Its loop stops
+as soon as every episode has ended, so short episodes cost short loops.
+
+Termination and truncation (DESIGN §2): a terminal (unhealthy) step stores discount 0; an
+episode cut at its step limit stores discount 1 so the critic bootstraps through it. A step
+whose physics went non-finite (`metrics["unstable"]`, or a non-finite observation or reward)
+ends the episode and is never marked valid, so it never reaches the replay buffer.
+"""
+
+from typing import Callable
+
+import chex
+import jax
+import jax.numpy as jnp
+from brax.envs.base import Env, State
+
+from pgps_jax.buffer import Transition
+
+Policy = Callable[[chex.ArrayTree, jax.Array], jax.Array]  # (params, obs) -> action
+
+
+@chex.dataclass(frozen=True)
+class Episodes:
+    returns: jax.Array        # [B] undiscounted return of each episode
+    lengths: jax.Array        # [B] int32 env steps taken (interaction steps)
+    unstable: jax.Array       # [B] bool, the episode ended on a non-finite physics state
+    transitions: Transition   # [max_steps, B, ...] (empty [0, B] when not recorded)
+    valid: jax.Array          # [max_steps, B] bool, rows to store in the replay buffer
+
+
+def _is_sound(state: State) -> jax.Array:
+    """[B] bool: the step produced finite values and the env did not flag instability."""
+    obs_ok = jnp.all(jnp.isfinite(state.obs), axis=-1)
+    unstable = state.metrics.get("unstable", jnp.zeros_like(state.reward))
+    return obs_ok & jnp.isfinite(state.reward) & (unstable == 0)
+
+
+def _select(pred: jax.Array, on_true, on_false):
+    """Per-env choice between two batched pytrees ([B] predicate)."""
+    def pick(a, b):
+        return jnp.where(pred.reshape(pred.shape + (1,) * (a.ndim - 1)), a, b)
+    return jax.tree.map(pick, on_true, on_false)
+
+
+def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: jax.Array,
+                 step_limits: jax.Array, max_steps: int, record: bool = True) -> Episodes:
+    """One episode per actor; `params` and `reset_keys` have leading batch dim B.
+
+    step_limits: [B] int, each episode's cap T (≤ max_steps); 0 skips that slot.
+    record: keep the transitions (population rollouts) or only returns (evaluation).
+    """
+    batch = reset_keys.shape[0]
+    state = jax.vmap(env.reset)(reset_keys)
+    act = jax.vmap(policy)
+    rows = max_steps if record else 0
+    empty = Transition(obs=jnp.zeros((rows, batch, env.observation_size)),
+                       action=jnp.zeros((rows, batch, env.action_size)),
+                       reward=jnp.zeros((rows, batch)),
+                       next_obs=jnp.zeros((rows, batch, env.observation_size)),
+                       discount=jnp.zeros((rows, batch)))
+    carry = dict(t=jnp.zeros((), jnp.int32), state=state, alive=step_limits > 0,
+                 returns=jnp.zeros((batch,)), lengths=jnp.zeros((batch,), jnp.int32),
+                 unstable=jnp.zeros((batch,), bool), transitions=empty,
+                 valid=jnp.zeros((rows, batch), bool))
+
+    def cond(c):
+        return jnp.any(c["alive"])
+
+    def body(c):
+        state, alive = c["state"], c["alive"]
+        action = act(params, state.obs)
+        nxt = jax.vmap(env.step)(state, action)
+        sound = _is_sound(nxt)
+        stored = alive & sound
+        lengths = c["lengths"] + alive
+        out = dict(c, t=c["t"] + 1, lengths=lengths,
+                   returns=c["returns"] + jnp.where(stored, nxt.reward, 0.0),
+                   unstable=c["unstable"] | (alive & ~sound),
+                   alive=stored & (nxt.done == 0) & (lengths < step_limits),
+                   state=_select(alive, nxt, state))
+        if record:
+            step = Transition(obs=state.obs, action=action, reward=nxt.reward,
+                              next_obs=nxt.obs, discount=1.0 - nxt.done)
+            out["transitions"] = jax.tree.map(lambda buf, x: buf.at[c["t"]].set(x),
+                                              c["transitions"], step)
+            out["valid"] = c["valid"].at[c["t"]].set(stored)
+        return out
+
+    c = jax.lax.while_loop(cond, body, carry)
+    return Episodes(returns=c["returns"], lengths=c["lengths"], unstable=c["unstable"],
+                    transitions=c["transitions"], valid=c["valid"])
+
+
+def random_warmup(env: Env, key: jax.Array, num_envs: int, steps_per_env: int,
+                  max_episode_steps: int) -> tuple[Transition, jax.Array]:
+    """Uniform random actions in [-1, 1] on `num_envs` envs for `steps_per_env` steps each.
+
+    Episodes restart on termination, instability or after `max_episode_steps` (a truncation,
+    stored with discount 1). Returns transitions [steps_per_env, num_envs] and their validity.
+    """
+    reset_key, action_key, restart_key = jax.random.split(key, 3)
+    state = jax.vmap(env.reset)(jax.random.split(reset_key, num_envs))
+
+    def step(carry, t):
+        state, elapsed = carry
+        action = jax.random.uniform(jax.random.fold_in(action_key, t),
+                                    (num_envs, env.action_size), minval=-1.0, maxval=1.0)
+        nxt = jax.vmap(env.step)(state, action)
+        sound = _is_sound(nxt)
+        transition = Transition(obs=state.obs, action=action, reward=nxt.reward,
+                                next_obs=nxt.obs, discount=1.0 - nxt.done)
+        elapsed = elapsed + 1
+        restart = (nxt.done > 0) | ~sound | (elapsed >= max_episode_steps)
+        fresh = jax.vmap(env.reset)(jax.random.split(jax.random.fold_in(restart_key, t),
+                                                     num_envs))
+        state = _select(restart, fresh, nxt)
+        return (state, jnp.where(restart, 0, elapsed)), (transition, sound)
+
+    _, (transitions, valid) = jax.lax.scan(step, (state, jnp.zeros((num_envs,), jnp.int32)),
+                                           jnp.arange(steps_per_env))
+    return transitions, valid
