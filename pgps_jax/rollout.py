@@ -25,6 +25,7 @@ Policy = Callable[[chex.ArrayTree, jax.Array], jax.Array]  # (params, obs) -> ac
 @chex.dataclass(frozen=True)
 class Episodes:
     returns: jax.Array        # [B] undiscounted return of each episode
+    discounted: jax.Array     # [B] Σ_t γ^t r_t with the `gamma` given to run_episodes
     lengths: jax.Array        # [B] int32 env steps taken (interaction steps)
     unstable: jax.Array       # [B] bool, the episode ended on a non-finite physics state
     transitions: Transition   # [max_steps, B, ...] (empty [0, B] when not recorded)
@@ -46,11 +47,13 @@ def _select(pred: jax.Array, on_true, on_false):
 
 
 def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: jax.Array,
-                 step_limits: jax.Array, max_steps: int, record: bool = True) -> Episodes:
+                 step_limits: jax.Array, max_steps: int, record: bool = True,
+                 gamma: float = 1.0) -> Episodes:
     """One episode per actor; `params` and `reset_keys` have leading batch dim B.
 
     step_limits: [B] int, each episode's cap T (≤ max_steps); 0 skips that slot.
     record: keep the transitions (population rollouts) or only returns (evaluation).
+    gamma: discount of the `discounted` returns (J(s_0) of Appendix A).
     """
     batch = reset_keys.shape[0]
     state = jax.vmap(env.reset)(reset_keys)
@@ -62,7 +65,7 @@ def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: j
                        next_obs=jnp.zeros((rows, batch, env.observation_size)),
                        discount=jnp.zeros((rows, batch)))
     carry = dict(t=jnp.zeros((), jnp.int32), state=state, alive=step_limits > 0,
-                 returns=jnp.zeros((batch,)), lengths=jnp.zeros((batch,), jnp.int32),
+                 returns=jnp.zeros((batch,)), discounted=jnp.zeros((batch,)), lengths=jnp.zeros((batch,), jnp.int32),
                  unstable=jnp.zeros((batch,), bool), transitions=empty,
                  valid=jnp.zeros((rows, batch), bool))
 
@@ -76,8 +79,9 @@ def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: j
         sound = _is_sound(nxt)
         stored = alive & sound
         lengths = c["lengths"] + alive
-        out = dict(c, t=c["t"] + 1, lengths=lengths,
-                   returns=c["returns"] + jnp.where(stored, nxt.reward, 0.0),
+        reward = jnp.where(stored, nxt.reward, 0.0)
+        out = dict(c, t=c["t"] + 1, lengths=lengths, returns=c["returns"] + reward,
+                   discounted=c["discounted"] + gamma ** c["t"] * reward,
                    unstable=c["unstable"] | (alive & ~sound),
                    alive=stored & (nxt.done == 0) & (lengths < step_limits),
                    state=_select(alive, nxt, state))
@@ -90,7 +94,7 @@ def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: j
         return out
 
     c = jax.lax.while_loop(cond, body, carry)
-    return Episodes(returns=c["returns"], lengths=c["lengths"], unstable=c["unstable"],
+    return Episodes(returns=c["returns"], discounted=c["discounted"], lengths=c["lengths"], unstable=c["unstable"],
                     transitions=c["transitions"], valid=c["valid"])
 
 
