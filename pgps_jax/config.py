@@ -79,8 +79,8 @@ class PGPSConfig:
     # --- Q-critic filtering (Algorithm 2) ---
     q_filter_start: int = 150_000
     """T_start-Q: total steps after which half the population is chosen by the critic."""
-    sample_ratio: int = 50
-    """SR: M = SR·N candidates are scored by the critic."""
+    sample_ratio: float = 50
+    """SR: M = ⌊SR·N⌋ candidates are scored by the critic."""
     ss1_size: int = 64
     """SS_1: states on which each candidate's Q is averaged."""
 
@@ -120,8 +120,8 @@ class PGPSConfig:
 
     @property
     def num_candidates(self) -> int:
-        """M = SR·N candidates scored by the critic (Algorithm 2)."""
-        return self.sample_ratio * self.pop_size
+        """M = ⌊SR·N⌋ candidates scored by the critic (Algorithm 2)."""
+        return int(self.sample_ratio * self.pop_size)
 
     @property
     def td3_probe(self) -> bool:
@@ -165,7 +165,7 @@ def _validate(c: PGPSConfig) -> None:
     _require(1 <= c.top_k <= c.pop_size, "top_k", c.top_k, f"in [1, pop_size={c.pop_size}]")
     positive_ints = ("batch_size", "buffer_size", "update_blocks", "td3_to_cem_period",
                      "ss1_size", "ss2_size", "t_init", "t_max", "t_interval", "eval_episodes",
-                     "eval_steps", "sample_ratio")
+                     "eval_steps")
     for name in positive_ints:
         value = getattr(c, name)
         _require(isinstance(value, int) and value > 0, name, value, "a positive integer")
@@ -173,7 +173,7 @@ def _validate(c: PGPSConfig) -> None:
         value = getattr(c, name)
         _require(isinstance(value, int) and value >= 0, name, value, "a non-negative integer")
     positive_floats = ("sigma_init", "sigma_limit", "actor_lr", "critic_lr", "beta_init",
-                       "beta_min", "beta_max", "d_target", "max_grad_norm")
+                       "beta_min", "beta_max", "d_target", "max_grad_norm", "sample_ratio")
     for name in positive_floats:
         value = getattr(c, name)
         _require(value > 0, name, value, "> 0")
@@ -187,7 +187,8 @@ def _validate(c: PGPSConfig) -> None:
              f"in [beta_min={c.beta_min}, beta_max={c.beta_max}]")
     _require(c.t_init <= c.t_max, "t_init", c.t_init, f"<= t_max={c.t_max}")
     _require(c.num_candidates >= c.num_elite_filtered, "sample_ratio", c.sample_ratio,
-             f"large enough that SR·N >= N/2 = {c.num_elite_filtered} candidates")
+             f"large enough that SR·N = {c.num_candidates} candidates >= the "
+             f"{c.num_elite_filtered} population slots Q-filtering fills")
     _require(c.warmup_steps <= c.buffer_size, "warmup_steps", c.warmup_steps,
              f"<= buffer_size={c.buffer_size}")
     _require(c.pop_size * c.t_max <= c.buffer_size, "buffer_size", c.buffer_size,

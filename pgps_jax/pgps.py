@@ -197,19 +197,22 @@ def evaluate(config: PGPSConfig, env: Env, state: TrainState, key: jax.Array) ->
     return metrics
 
 
+@functools.lru_cache(maxsize=None)
 def make_init(config: PGPSConfig, env: Env) -> Callable[[jax.Array], TrainState]:
-    """Jitted `init` bound to `config` and `env`: key -> TrainState."""
+    """Jitted `init` bound to `config` and `env`: key -> TrainState (cached per pair)."""
     return jax.jit(functools.partial(init, config, env))
 
 
+@functools.lru_cache(maxsize=None)
 def make_generation_step(config: PGPSConfig, env: Env,
                          donate: bool = True) -> Callable[[TrainState], tuple[TrainState, dict]]:
-    """Jitted `generation_step` bound to `config` and `env`; the state is donated by default,
-    so the replay buffer is updated in place (do not reuse the state you pass in)."""
+    """Jitted `generation_step` bound to `config` and `env` (cached per pair); the state is
+    donated by default, so the buffer is updated in place (do not reuse the state passed in)."""
     return jax.jit(functools.partial(generation_step, config, env),
                    donate_argnums=(0,) if donate else ())
 
 
+@functools.lru_cache(maxsize=None)
 def make_evaluate(config: PGPSConfig, env: Env) -> Callable[[TrainState, jax.Array], dict]:
     """Jitted `evaluate` bound to `config` and `env`: (state, key) -> metrics."""
     return jax.jit(functools.partial(evaluate, config, env))

@@ -1,0 +1,69 @@
+"""PGPSConfig: Table 3/4 presets and eager validation with actionable messages."""
+
+import pytest
+
+from pgps_jax.config import TASK_NAMES, PGPSConfig, for_task
+
+
+def test_defaults_are_table_3():
+    c = PGPSConfig()
+    assert (c.tau, c.actor_lr, c.critic_lr, c.gamma) == (0.005, 2e-3, 1e-3, 0.99)
+    assert (c.buffer_size, c.batch_size, c.sigma_init, c.sigma_limit) == (1_000_000, 256, 7.5e-3, 1e-5)
+    assert (c.beta_init, c.d_target, c.ss2_size, c.ss1_size) == (1.0, 0.05, 512, 64)
+    assert (c.q_filter_start, c.sample_ratio) == (150_000, 50)
+    assert (c.t_max, c.t_init, c.t_interval) == (1000, 400, 100_000)
+    assert c.actor_hidden == c.critic_hidden == (400, 300)
+
+
+@pytest.mark.parametrize("task, n, k, f, tau_sigma", [
+    ("swimmer", 10, 5, 3, 0.01), ("halfcheetah", 10, 5, 1, 0.03), ("hopper", 6, 3, 1, 0.03),
+    ("walker2d", 6, 3, 1, 0.03), ("ant", 6, 3, 1, 0.03)])
+def test_table_4_presets(task, n, k, f, tau_sigma):
+    c = for_task(task)
+    assert (c.pop_size, c.top_k, c.td3_to_cem_period, c.sigma_decay) == (n, k, f, tau_sigma)
+
+
+def test_preset_overrides_apply():
+    assert for_task("hopper", q_filter=False).q_filter is False
+
+
+def test_unknown_task_lists_choices():
+    with pytest.raises(ValueError) as err:
+        for_task("humanoid")
+    assert "humanoid" in str(err.value)
+    for name in TASK_NAMES:
+        assert name in str(err.value)
+
+
+@pytest.mark.parametrize("changes, field, hint", [
+    (dict(pop_size=1, top_k=1), "pop_size", ">= 2"),
+    (dict(top_k=0), "top_k", "[1, pop_size=10]"),
+    (dict(top_k=11), "top_k", "[1, pop_size=10]"),
+    (dict(batch_size=0), "batch_size", "positive integer"),
+    (dict(buffer_size=-5), "buffer_size", "positive integer"),
+    (dict(t_init=0), "t_init", "positive integer"),
+    (dict(t_max=-1), "t_max", "positive integer"),
+    (dict(ss1_size=0), "ss1_size", "positive integer"),
+    (dict(sample_ratio=0), "sample_ratio", "> 0"),
+    (dict(tau=0.0), "tau", "(0, 1]"),
+    (dict(gamma=1.0), "gamma", "[0, 1)"),
+    (dict(actor_lr=-1e-3), "actor_lr", "> 0"),
+    (dict(t_init=2000), "t_init", "<= t_max=1000"),
+    (dict(buffer_size=5000, warmup_steps=1000), "buffer_size", "pop_size·t_max"),
+])
+def test_invalid_values_name_field_value_and_range(changes, field, hint):
+    with pytest.raises(ValueError) as err:
+        PGPSConfig(**changes)
+    message = str(err.value)
+    assert f"PGPSConfig.{field}=" in message
+    assert repr(changes[field]) in message
+    assert hint in message
+
+
+def test_too_few_candidates_for_half_population():
+    # SR·N must supply at least the N/2 actors that Q-filtering selects.
+    with pytest.raises(ValueError) as err:
+        PGPSConfig(pop_size=10, top_k=5, sample_ratio=0.4)
+    assert "PGPSConfig.sample_ratio=0.4" in str(err.value)
+    assert "4 candidates >= the 5 population slots" in str(err.value)
+    assert PGPSConfig(pop_size=10, top_k=5, sample_ratio=0.5).num_candidates == 5

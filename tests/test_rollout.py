@@ -1,0 +1,109 @@
+"""Population episodes: variable lengths, no auto-reset, terminal vs truncation, NaN guard."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.envs.base import Env, State
+
+from pgps_jax import buffer as replay
+from pgps_jax.rollout import random_warmup, run_episodes
+
+
+class Countdown(Env):
+    """obs = [t, 0]; reward = 1 + action; terminal at step `terminate_at`; NaN at `nan_at`."""
+
+    def __init__(self, terminate_at=1000, nan_at=1000):
+        self.terminate_at, self.nan_at = terminate_at, nan_at
+
+    def reset(self, rng):
+        zero = jnp.zeros(())
+        return State(pipeline_state=None, obs=jnp.zeros(2), reward=zero, done=zero,
+                     metrics={"unstable": zero}, info={})
+
+    def step(self, state, action):
+        t = state.obs[0] + 1
+        obs = jnp.stack([t, jnp.where(t == self.nan_at, jnp.nan, 0.0)])
+        done = (t >= self.terminate_at).astype(jnp.float32)
+        return state.replace(obs=obs, reward=1.0 + action[0], done=done)
+
+    observation_size = property(lambda self: 2)
+    action_size = property(lambda self: 1)
+    backend = property(lambda self: "jax")
+
+
+def constant_policy(params, obs):
+    return params[:1]
+
+
+def run(env, limits, params=None, **kwargs):
+    limits = jnp.asarray(limits)
+    params = jnp.zeros((limits.size, 1)) if params is None else params
+    return run_episodes(env, constant_policy, params, jax.random.split(jax.random.PRNGKey(0),
+                        limits.size), limits, max_steps=10, **kwargs)
+
+
+def test_episodes_stop_at_their_limit_or_termination():
+    episodes = run(Countdown(terminate_at=6), [3, 10, 0, 6])
+    np.testing.assert_array_equal(episodes.lengths, [3, 6, 0, 6])
+    np.testing.assert_array_equal(episodes.returns, [3.0, 6.0, 0.0, 6.0])
+    np.testing.assert_array_equal(episodes.valid.sum(0), [3, 6, 0, 6])
+    # rows beyond an episode's end are not valid (no auto-reset)
+    assert not episodes.valid[6:].any()
+
+
+def test_terminal_step_has_zero_discount_and_truncation_bootstraps():
+    episodes = run(Countdown(terminate_at=4), [10, 3])
+    discount = np.asarray(episodes.transitions.discount)
+    np.testing.assert_array_equal(discount[:4, 0], [1, 1, 1, 0])   # ends by termination
+    np.testing.assert_array_equal(discount[:3, 1], [1, 1, 1])      # cut at T: bootstrap
+    np.testing.assert_array_equal(episodes.transitions.next_obs[:4, 0, 0], [1, 2, 3, 4])
+    np.testing.assert_array_equal(episodes.transitions.obs[:4, 0, 0], [0, 1, 2, 3])
+
+
+def test_poisoned_transition_never_reaches_the_buffer():
+    episodes = run(Countdown(nan_at=4), [8, 3])
+    assert bool(episodes.unstable[0]) and not bool(episodes.unstable[1])
+    np.testing.assert_array_equal(episodes.lengths, [4, 3])     # the NaN step ends the episode
+    np.testing.assert_array_equal(episodes.returns, [3.0, 3.0])  # and adds no reward
+    buffer = replay.add(replay.init(32, 2, 1), episodes.transitions, episodes.valid)
+    assert int(buffer.size) == 6
+    assert np.isfinite(np.asarray(buffer.data.next_obs)).all()
+    assert 4.0 not in np.asarray(buffer.data.next_obs[:, 0])
+
+
+def test_env_flagged_instability_is_dropped():
+    class Flagged(Countdown):
+        def step(self, state, action):
+            nxt = super().step(state, action)
+            return nxt.replace(metrics={"unstable": (nxt.obs[0] == 2).astype(jnp.float32)})
+    episodes = run(Flagged(), [5])
+    assert int(episodes.lengths[0]) == 2 and int(episodes.valid.sum()) == 1
+
+
+def test_discounted_return():
+    episodes = run(Countdown(), [5], params=jnp.ones((1, 1)), gamma=0.9)  # reward 2 per step
+    assert float(episodes.discounted[0]) == np.float32(sum(2 * 0.9 ** t for t in range(5)))
+    assert float(episodes.returns[0]) == 10.0
+
+
+def test_record_false_keeps_only_returns():
+    episodes = run(Countdown(), [4, 2], record=False)
+    assert episodes.transitions.reward.shape == (0, 2)
+    np.testing.assert_array_equal(episodes.returns, [4.0, 2.0])
+
+
+def test_warmup_restarts_terminated_and_truncated_episodes():
+    transitions, valid = random_warmup(Countdown(terminate_at=3), jax.random.PRNGKey(0),
+                                       num_envs=2, steps_per_env=7, max_episode_steps=5)
+    assert transitions.reward.shape == (7, 2) and bool(valid.all())
+    np.testing.assert_array_equal(transitions.obs[:, 0, 0], [0, 1, 2, 0, 1, 2, 0])
+    np.testing.assert_array_equal(transitions.discount[:, 0], [1, 1, 0, 1, 1, 0, 1])
+    actions = np.asarray(transitions.action)
+    assert (np.abs(actions) <= 1).all() and actions.std() > 0.3
+
+
+def test_warmup_truncates_at_the_time_limit_without_terminal_discount():
+    transitions, _ = random_warmup(Countdown(), jax.random.PRNGKey(0), num_envs=1,
+                                   steps_per_env=7, max_episode_steps=3)
+    np.testing.assert_array_equal(transitions.obs[:, 0, 0], [0, 1, 2, 0, 1, 2, 0])
+    np.testing.assert_array_equal(transitions.discount[:, 0], 1)
