@@ -1,0 +1,187 @@
+"""Milliseconds per env step of each task at batch 10, 60 and 1024, in contact.
+
+For every task and batch size: our env (`jax.vmap(env.step)` in a `lax.scan`, uniform random
+actions) after 200 warm-up steps of random actions, against the bare-physics floor on the
+same model and settings from the same warmed-up physics state: `n_frames` calls of
+`jax.vmap(mjx.step)` in a `lax.fori_loop` per env step, same random actions. At batch 60,
+Brax's own env (`brax.envs.get_environment(task, backend="mjx")`) as shipped and with our
+solver settings, started from our warmed-up positions and velocities (Brax's swimmer refuses
+the MJX backend). Every function is compiled before any is timed; a figure is the median of
+5 timed calls of 100 steps (Brax's env: 2 calls of 20 steps, it is slow).
+
+    python benchmarks/env_latency.py  # table on stdout, benchmarks/results/env_latency.json
+"""
+
+import argparse
+import concurrent.futures
+import dataclasses
+import json
+import time
+
+from brax import envs as brax_envs
+import jax
+import jax.numpy as jnp
+from mujoco import mjx
+import numpy as np
+
+from pgps_jax.envs import TASKS, make_env
+
+BATCHES = (10, 60, 1024)
+BRAX_BATCH = 60
+WARMUP, STEPS, REPEATS = 200, 100, 5
+BRAX_STEPS, BRAX_REPEATS = 20, 2
+BRAX_NAMES = {"halfcheetah": "halfcheetah", "hopper": "hopper", "walker2d": "walker2d",
+              "ant": "ant"}
+
+
+def _actions(key, n_steps, batch, action_size):
+    return jax.random.uniform(key, (n_steps, batch, action_size), minval=-1.0, maxval=1.0)
+
+
+def env_rollout(env, batch: int, n_steps: int):
+    """(state, key) -> state after n_steps of vmap(env.step) under random actions."""
+    def rollout(state, key):
+        actions = _actions(key, n_steps, batch, env.action_size)
+        return jax.lax.scan(lambda s, a: (jax.vmap(env.step)(s, a), None), state, actions)[0]
+    return rollout
+
+
+def bare_rollout(env, batch: int, n_steps: int):
+    """(data, key) -> data after n_steps × n_frames of vmap(mjx.step) under random controls."""
+    model = env.mjx_model
+
+    def env_step(data, ctrl):
+        return jax.lax.fori_loop(
+            0, env.n_frames,
+            lambda _, d: jax.vmap(lambda x, u: mjx.step(model, x.replace(ctrl=u)))(d, ctrl),
+            data), None
+
+    def rollout(data, key):
+        return jax.lax.scan(env_step, data, _actions(key, n_steps, batch, env.action_size))[0]
+    return rollout
+
+
+def brax_env(task: str, settings_from=None):
+    """Brax's env on MJX, as shipped or with the solver options of our env `settings_from`."""
+    env = brax_envs.get_environment(BRAX_NAMES[task], backend="mjx")
+    if settings_from is not None:
+        opt = settings_from.mjx_model.opt
+        env.sys = env.sys.tree_replace({
+            "opt.solver": opt.solver, "opt.iterations": opt.iterations,
+            "opt.ls_iterations": opt.ls_iterations, "opt.disableflags": opt.disableflags})
+    return env
+
+
+def compile_fn(fn, *example_args):
+    """AOT-compiles fn for arguments shaped like example_args (arrays or shape structs)."""
+    return jax.jit(fn).lower(*example_args).compile()
+
+
+def timed(fn, state, key, repeats: int) -> float:
+    """Median seconds of `repeats` calls of fn(state, key)."""
+    times = []
+    for i in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(state, jax.random.fold_in(key, i)))
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def active_contacts(data) -> float:
+    """Mean number of penetrating contacts per env."""
+    return float(jnp.mean(jnp.sum(data._impl.contact.dist < 0, axis=-1)))
+
+
+def build(task: str, pool: concurrent.futures.Executor) -> dict:
+    """Starts compiling, on `pool`, every function one task's measurements need."""
+    env = make_env(task)
+    key = jax.random.PRNGKey(0)
+    jobs = {}
+    for batch in BATCHES:
+        state = jax.eval_shape(jax.vmap(env.reset), jax.random.split(key, batch))
+        jobs["env", batch] = (env_rollout(env, batch, STEPS), state, key)
+        jobs["bare", batch] = (bare_rollout(env, batch, STEPS), state.pipeline_state, key)
+    if task in BRAX_NAMES:
+        keys = jax.random.split(key, BRAX_BATCH)
+        qpos, qvel = (jax.ShapeDtypeStruct((BRAX_BATCH, n), jnp.float32)
+                      for n in (env.mj_model.nq, env.mj_model.nv))
+        for name, settings_from in (("brax", None), ("brax_same_settings", env)):
+            benv = brax_env(task, settings_from)
+            state = jax.eval_shape(jax.vmap(benv.reset), keys)
+            jobs[name, "reset"] = (jax.vmap(benv.reset), keys)
+            jobs[name, "init"] = (jax.vmap(benv.pipeline_init), qpos, qvel)
+            jobs[name] = (env_rollout(benv, BRAX_BATCH, BRAX_STEPS), state, key)
+    return {"env": env} | {k: pool.submit(compile_fn, *job) for k, job in jobs.items()}
+
+
+def measure(task: str, fns: dict) -> dict:
+    """Times one task's compiled functions; returns its figures."""
+    env, key = fns["env"], jax.random.PRNGKey(1)
+    out = {"n_frames": env.n_frames, "dt": env.dt, "physics": dataclasses.asdict(env.physics)}
+    for batch in BATCHES:
+        state = jax.jit(jax.vmap(env.reset))(jax.random.split(key, batch))
+        for i in range(WARMUP // STEPS):
+            state = fns["env", batch](state, jax.random.fold_in(key, 100 + i))
+        env_s = timed(fns["env", batch], state, key, REPEATS)
+        bare_s = timed(fns["bare", batch], state.pipeline_state, key, REPEATS)
+        out[f"batch_{batch}"] = {
+            "env_ms": 1e3 * env_s / STEPS, "bare_ms": 1e3 * bare_s / STEPS,
+            "ratio": env_s / bare_s, "contacts_per_env": active_contacts(state.pipeline_state),
+            "done_fraction": float(state.done.mean())}
+        if batch == BRAX_BATCH:
+            warm = state.pipeline_state
+    for name in ("brax", "brax_same_settings"):
+        if (name, "reset") not in fns:
+            out[f"{name}_ms_batch_{BRAX_BATCH}"] = None
+            continue
+        state = fns[name, "reset"](jax.random.split(key, BRAX_BATCH))
+        state = state.replace(pipeline_state=fns[name, "init"](warm.qpos, warm.qvel))
+        state = fns[name](state, key)  # first call, untimed
+        out[f"{name}_ms_batch_{BRAX_BATCH}"] = (
+            1e3 * timed(fns[name], state, key, BRAX_REPEATS) / BRAX_STEPS)
+    return out
+
+
+def table(results: dict) -> str:
+    """The results as a markdown table."""
+    lines = ["| task | " + " | ".join(f"env ms @{b}" for b in BATCHES)
+             + f" | floor ms @{BRAX_BATCH} | ratio @{BRAX_BATCH}"
+             f" | ratio @{BATCHES[0]} / @{BATCHES[-1]}"
+             f" | Brax env ms @{BRAX_BATCH} (as shipped / our settings) |",
+             "|---" * 7 + "|"]
+    for task, r in results["tasks"].items():
+        b = r[f"batch_{BRAX_BATCH}"]
+        brax = " / ".join("—" if r[f"{n}_ms_batch_{BRAX_BATCH}"] is None
+                          else f"{r[f'{n}_ms_batch_{BRAX_BATCH}']:.2f}"
+                          for n in ("brax", "brax_same_settings"))
+        lines.append(
+            f"| {task} | " + " | ".join(f"{r[f'batch_{x}']['env_ms']:.2f}" for x in BATCHES)
+            + f" | {b['bare_ms']:.2f} | {b['ratio']:.2f} | {r[f'batch_{BATCHES[0]}']['ratio']:.2f}"
+            f" / {r[f'batch_{BATCHES[-1]}']['ratio']:.2f} | {brax} |")
+    return "\n".join(lines)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tasks", default=",".join(TASKS))
+    parser.add_argument("--out", default="benchmarks/results/env_latency.json")
+    args = parser.parse_args()
+    tasks = args.tasks.split(",")
+    start = time.perf_counter()
+    with concurrent.futures.ThreadPoolExecutor(8) as pool:
+        pending = {task: build(task, pool) for task in tasks}
+        compiled = {task: {k: v if k == "env" else v.result() for k, v in fns.items()}
+                    for task, fns in pending.items()}
+    print(f"compiled in {time.perf_counter() - start:.0f} s", flush=True)
+    results = {"device": jax.devices()[0].device_kind, "warmup_steps": WARMUP,
+               "timed_steps": STEPS, "repeats": REPEATS, "tasks": {}}
+    for task in tasks:
+        results["tasks"][task] = measure(task, compiled[task])
+        print(task, json.dumps(results["tasks"][task]), flush=True)
+        with open(args.out, "w") as f:
+            json.dump(results, f, indent=1)
+    print(table(results))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,32 @@
+"""The tasks by name: the five MuJoCo locomotion tasks on MJX and a point mass for tests.
+
+`make_env(name, **kwargs)` builds one; for a MuJoCo task the keyword arguments override its
+solver settings (fields of `physics.Physics`).
+"""
+
+from brax.envs.base import Env
+
+from pgps_jax.envs.ant import Ant
+from pgps_jax.envs.half_cheetah import HalfCheetah
+from pgps_jax.envs.hopper import Hopper
+from pgps_jax.envs.point import PointMass
+from pgps_jax.envs.swimmer import Swimmer
+from pgps_jax.envs.walker2d import Walker2d
+
+_REGISTRY = {
+    "halfcheetah": HalfCheetah,
+    "hopper": Hopper,
+    "walker2d": Walker2d,
+    "ant": Ant,
+    "swimmer": Swimmer,
+    "point": PointMass,
+}
+TASKS = ("halfcheetah", "hopper", "walker2d", "ant", "swimmer")
+"""The MuJoCo tasks (the registry also holds "point")."""
+
+
+def make_env(name: str, **kwargs) -> Env:
+    """Builds the task `name`; raises ValueError listing the tasks if it is unknown."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown task {name!r}; available tasks: {', '.join(_REGISTRY)}")
+    return _REGISTRY[name](**kwargs)

@@ -1,0 +1,33 @@
+"""Ends an episode whose physics went non-finite, so no NaN reaches the learner.
+
+A step whose physics state, observation or reward is not finite becomes terminal
+(`done=1`, `metrics["unstable"]=1`, reward 0) and keeps the previous, finite physics state
+and observation, so later (vmapped) steps of that env stay finite. The rollout never stores
+a transition flagged unstable.
+"""
+
+from brax.envs.base import State
+import jax
+import jax.numpy as jnp
+
+
+def all_finite(*trees) -> jax.Array:
+    """True iff every floating-point leaf of `trees` is finite (a scalar bool)."""
+    leaves = [x for x in jax.tree.leaves(trees) if jnp.issubdtype(x.dtype, jnp.inexact)]
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
+
+
+def guard(prev: State, new: State, finite: jax.Array) -> State:
+    """Returns `new`, or, where `finite` is False, `prev`'s physics and obs flagged terminal."""
+    def keep(a, b):
+        return jnp.where(finite, a, b)
+
+    metrics = {k: keep(v, jnp.zeros_like(v)) for k, v in new.metrics.items()}
+    metrics["unstable"] = keep(0.0, 1.0).astype(jnp.float32)
+    return new.replace(
+        pipeline_state=jax.tree.map(keep, new.pipeline_state, prev.pipeline_state),
+        obs=keep(new.obs, prev.obs),
+        reward=keep(new.reward, 0.0),
+        done=keep(new.done, 1.0),
+        metrics=metrics,
+    )

@@ -1,0 +1,74 @@
+"""MuJoCo models from Brax's assets, their solver settings, and the frame-skip step on MJX.
+
+An env step is `n_frames` calls of `mjx.step` in a `lax.fori_loop`, with the control held
+fixed (Gym's `do_simulation`). Nothing else is computed per frame.
+"""
+
+import dataclasses
+
+import brax
+from etils import epath
+import jax
+import mujoco
+from mujoco import mjx
+import numpy as np
+
+_ASSETS = epath.resource_path(brax.__name__) / "envs/assets"
+_SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
+
+
+@dataclasses.dataclass(frozen=True)
+class Physics:
+    """Constraint-solver settings of one task (MuJoCo `mjOption` fields)."""
+
+    solver: str = "newton"
+    """'newton' or 'cg' (MJX has no PGS)."""
+    iterations: int = 1
+    """Maximum solver iterations per physics step."""
+    ls_iterations: int = 4
+    """Maximum line-search iterations per solver iteration (all of them run under vmap)."""
+    euler_damping: bool = False
+    """Integrate joint damping implicitly in the Euler step (MuJoCo's default: on)."""
+
+    def __post_init__(self):
+        if self.solver not in _SOLVERS:
+            raise ValueError(f"solver must be one of {sorted(_SOLVERS)}, got {self.solver!r}")
+        if self.iterations < 1 or self.ls_iterations < 1:
+            raise ValueError(
+                f"iterations and ls_iterations must be >= 1, got {self.iterations}, "
+                f"{self.ls_iterations}")
+
+
+def model_defaults(xml: str) -> Physics:
+    """The settings written in a Brax asset (MuJoCo's defaults where it names none)."""
+    opt = mujoco.MjModel.from_xml_path(str(_ASSETS / xml)).opt
+    solver = {v: k for k, v in _SOLVERS.items()}[mujoco.mjtSolver(opt.solver)]
+    return Physics(solver=solver, iterations=int(opt.iterations),
+                   ls_iterations=int(opt.ls_iterations),
+                   euler_damping=not opt.disableflags & mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
+
+
+def load_model(xml: str, physics: Physics) -> tuple[mujoco.MjModel, mjx.Model]:
+    """Loads `brax/envs/assets/<xml>` with `physics` applied; returns it and its MJX copy."""
+    model = mujoco.MjModel.from_xml_path(str(_ASSETS / xml))
+    model.opt.solver = _SOLVERS[physics.solver]
+    model.opt.iterations = physics.iterations
+    model.opt.ls_iterations = physics.ls_iterations
+    eulerdamp = int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
+    if physics.euler_damping:
+        model.opt.disableflags &= ~eulerdamp
+    else:
+        model.opt.disableflags |= eulerdamp
+    return model, mjx.put_model(model)
+
+
+def init_qpos(model: mujoco.MjModel) -> np.ndarray:
+    """The model's `init_qpos` custom numeric (Brax's convention) if present, else qpos0."""
+    if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, "init_qpos") >= 0:
+        return np.array(model.numeric("init_qpos").data)
+    return np.array(model.qpos0)
+
+
+def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int) -> mjx.Data:
+    """Advances `data` by `n_frames` physics steps with its control held fixed."""
+    return jax.lax.fori_loop(0, n_frames, lambda _, d: mjx.step(model, d), data)
