@@ -1,0 +1,290 @@
+"""Where a PGPS generation spends its time, against the floors, and the wall-clock of 1M steps.
+
+For each task (paper configuration, Table 3-4), at the late-run episode cap T = T_max with
+Q-filtering active:
+  - population rollout, evaluation episodes, Q-filtering, CEM update and TD3 updates, each
+    jitted on its own and timed (median of repeats, after compilation);
+  - floors measured in the same process: (a) `n_frames` × bare `vmap(mjx.step)` per env step
+    at the same batch; (b) one critic and one actor update written plainly in JAX (hand-written
+    MLPs, optax Adam, a `lax.scan`), batch 256; (c) sequential env steps per 1M-step run ×
+    (a) + updates per run × (b).
+  - critic and actor updates per second of the project's TD3 at batch 256.
+With --full-run TASK: the wall-clock of a whole 1M-step run (generation_step and evaluate every
+10,000 steps, as the CLI does, without file I/O) for 1 seed and for 5 seeds vmapped; compile
+time reported separately.
+
+    python benchmarks/throughput.py --tasks halfcheetah hopper --full-run halfcheetah
+"""
+
+import argparse
+import functools
+import json
+import os
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+sys.path.insert(0, os.path.dirname(__file__))
+from env_latency import bare_rollout  # noqa: E402  (sibling benchmark: the physics floor)
+
+from pgps_jax import buffer as replay  # noqa: E402
+from pgps_jax import cem, pgps  # noqa: E402
+from pgps_jax.config import for_task  # noqa: E402
+from pgps_jax.envs import TASKS, make_env  # noqa: E402
+from pgps_jax.rollout import run_episodes  # noqa: E402
+
+SMOKE = "--smoke" in sys.argv
+EVAL_EVERY = 10_000 if not SMOKE else 200
+TOTAL_STEPS = 1_000_000 if not SMOKE else 1000
+UPDATE_STEPS = 1000 if not SMOKE else 10    # updates per timed scan of the update benchmarks
+
+
+def timed(fn, *args, repeats=5):
+    """(seconds of the first call = compile + run, median seconds of later calls)."""
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - start
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - start)
+    return first, float(np.median(times))
+
+
+def sequential_steps_per_run(config) -> int:
+    """Env steps one actor takes in a 1M-step run if no episode terminates (eq. 4 schedule)."""
+    steps, sequential = config.warmup_steps, 0
+    while steps < TOTAL_STEPS:
+        limit = int(pgps.episode_limit(jnp.asarray(steps), config))
+        steps += limit * config.pop_size
+        sequential += limit
+    return sequential + -(-config.warmup_steps // config.pop_size)
+
+
+# ---------------------------------------------------------------- floors (b): plain updates
+def _plain_mlp_init(key, sizes):
+    keys = jax.random.split(key, len(sizes) - 1)
+    return [(jax.random.uniform(k, (a, b), minval=-1, maxval=1) / np.sqrt(a), jnp.zeros(b))
+            for k, a, b in zip(keys, sizes[:-1], sizes[1:])]
+
+
+def _plain_mlp(params, x):
+    for w, b in params[:-1]:
+        x = jax.nn.elu(x @ w + b)
+    w, b = params[-1]
+    return x @ w + b
+
+
+def plain_updates(obs_size, act_size, batch=256, capacity=1_000_000 if not SMOKE else 5000):
+    """Floor (b): critic and actor updates as plainly as JAX allows, scanned UPDATE_STEPS."""
+    key = jax.random.PRNGKey(0)
+    data = jax.random.normal(key, (capacity, 2 * obs_size + act_size + 2))
+    actor = _plain_mlp_init(key, [obs_size, 400, 300, act_size])
+    critics = [_plain_mlp_init(jax.random.fold_in(key, i), [obs_size + act_size, 400, 300, 1])
+               for i in range(2)]
+    opt = optax.adam(1e-3)
+
+    def unpack(rows):
+        o, a = rows[:, :obs_size], rows[:, obs_size:obs_size + act_size]
+        r, nxt = rows[:, obs_size + act_size], rows[:, obs_size + act_size + 1:-1]
+        return o, a, r, nxt, rows[:, -1]
+
+    def critic_step(carry, k):
+        critics, opt_state, target_critics = carry
+        o, a, r, nxt, d = unpack(data[jax.random.randint(k, (batch,), 0, capacity)])
+        na = jnp.tanh(_plain_mlp(actor, nxt))
+        y = r + 0.99 * d * jnp.minimum(*[_plain_mlp(c, jnp.concatenate([nxt, na], 1))[:, 0]
+                                         for c in target_critics])
+
+        def loss(cs):
+            return sum(jnp.mean((_plain_mlp(c, jnp.concatenate([o, a], 1))[:, 0] - y) ** 2)
+                       for c in cs)
+        g = jax.grad(loss)(critics)
+        upd, opt_state = opt.update(g, opt_state)
+        critics = optax.apply_updates(critics, upd)
+        target_critics = optax.incremental_update(critics, target_critics, 0.005)
+        return (critics, opt_state, target_critics), None
+
+    def actor_step(carry, k):
+        actor, opt_state, target = carry
+        o = unpack(data[jax.random.randint(k, (batch,), 0, capacity)])[0]
+
+        def loss(p):
+            act = jnp.tanh(_plain_mlp(p, o))
+            return -jnp.mean(_plain_mlp(critics[0], jnp.concatenate([o, act], 1)))
+        g = jax.grad(loss)(actor)
+        upd, opt_state = opt.update(g, opt_state)
+        actor = optax.apply_updates(actor, upd)
+        return (actor, opt_state, optax.incremental_update(actor, target, 0.005)), None
+
+    keys = jax.random.split(key, UPDATE_STEPS)
+    run_critic = jax.jit(lambda c: jax.lax.scan(critic_step, c, keys)[0])
+    run_actor = jax.jit(lambda c: jax.lax.scan(actor_step, c, keys)[0])
+    _, critic_s = timed(run_critic, (critics, opt.init(critics), critics))
+    _, actor_s = timed(run_actor, (actor, opt.init(actor), actor))
+    return critic_s / UPDATE_STEPS, actor_s / UPDATE_STEPS
+
+
+# ------------------------------------------------------------------ per-generation components
+def bench_config(task: str):
+    """The paper's configuration, or a tiny one with --smoke (a CPU check of this script)."""
+    if not SMOKE:
+        return for_task(task)
+    return for_task(task, t_init=10, t_max=20, t_interval=1000, buffer_size=5000,
+                    warmup_steps=200, q_filter_start=400, actor_hidden=(16, 16),
+                    critic_hidden=(16, 16), eval_steps=20, sample_ratio=2)
+
+
+def components(task: str) -> dict:
+    config = bench_config(task)
+    env = make_env(task)
+    n, t_max = config.pop_size, config.t_max
+    td3, unflatten = pgps._parts(config, env)
+    policy = pgps._policy(td3, unflatten)
+    init_s, _ = timed(pgps.make_init(config, env), jax.random.PRNGKey(0), repeats=0)
+    state = pgps.make_init(config, env)(jax.random.PRNGKey(0))
+    state = state.replace(total_steps=jnp.asarray(config.q_filter_start, jnp.int32))
+    key = jax.random.PRNGKey(1)
+    population = cem.ask(key, state.cem, n)
+    reset_keys = jax.random.split(key, n)
+
+    rollout = jax.jit(lambda p: run_episodes(env, policy, p, reset_keys, jnp.full((n,), t_max),
+                                             t_max))
+    _, rollout_s = timed(rollout, population, repeats=3)
+    lengths = np.asarray(rollout(population).lengths)
+    evaluate = pgps.make_evaluate(config, env)
+    _, eval_s = timed(evaluate, state, jax.random.PRNGKey(100), repeats=3)
+    qfilter = jax.jit(lambda s, k: pgps._population(config, td3, unflatten, s, k, k, k))
+    _, qfilter_s = timed(qfilter, state, key)
+    returns = jax.random.normal(key, (n,))
+    tell = jax.jit(functools.partial(cem.tell, top_k=config.top_k, sigma_limit=config.sigma_limit,
+                                     sigma_decay=config.sigma_decay,
+                                     divide_by_k=config.cem_divide_by_k))
+    _, tell_s = timed(tell, state.cem, population, returns)
+    num_update = n * t_max // config.update_blocks
+    train = jax.jit(lambda s: td3.train(s.td3, s.buffer, key, jnp.asarray(num_update),
+                                        unflatten(s.cem.elite), jnp.asarray(False), s.beta))
+    _, train_s = timed(train, state, repeats=2)
+    step = pgps.make_generation_step(config, env, donate=False)
+    _, generation_s = timed(step, state, repeats=2)
+
+    critic_fn = jax.jit(lambda s: jax.lax.scan(
+        lambda t, k: (td3.critic_update(t, replay.sample(s.buffer, k, 256), k)[0], None),
+        s.td3, jax.random.split(key, UPDATE_STEPS))[0])
+    no_elite = jnp.zeros((256, env.action_size))
+    actor_fn = jax.jit(lambda s: jax.lax.scan(
+        lambda t, k: (td3.actor_update(t, replay.sample(s.buffer, k, 256).obs, no_elite,
+                                       jnp.asarray(0.0))[0], None),
+        s.td3, jax.random.split(key, UPDATE_STEPS))[0])
+    _, critic_scan_s = timed(critic_fn, state)
+    _, actor_scan_s = timed(actor_fn, state)
+
+    # floors measured in this process
+    data = jax.vmap(env.reset)(reset_keys).pipeline_state
+    bare = jax.jit(bare_rollout(env, n, 100))
+    _, bare_s = timed(bare, data, key)
+    bare_ms = bare_s / 100 * 1e3
+    plain_critic_s, plain_actor_s = plain_updates(env.observation_size, env.action_size)
+    sequential = sequential_steps_per_run(config)
+    updates = TOTAL_STEPS
+    env_ms = rollout_s / max(int(lengths.max()), 1) * 1e3
+    eval_ms = eval_s / config.eval_steps * 1e3
+    return {
+        "task": task, "pop_size": n, "T": t_max, "episode_lengths": lengths.tolist(),
+        "init_compile_and_run_s": init_s,
+        "generation_ms": {
+            "population_rollout": rollout_s * 1e3, "evaluation_30_episodes": eval_s * 1e3,
+            "q_filter": qfilter_s * 1e3, "cem_update": tell_s * 1e3,
+            "td3_updates": train_s * 1e3, "generation_step_total": generation_s * 1e3},
+        "per_env_step_ms": {"population": env_ms, "evaluation": eval_ms, "floor_bare_mjx": bare_ms,
+                            "population_over_floor": env_ms / bare_ms},
+        "per_update_us": {
+            "critic": critic_scan_s / UPDATE_STEPS * 1e6, "actor": actor_scan_s / UPDATE_STEPS * 1e6,
+            "floor_critic": plain_critic_s * 1e6, "floor_actor": plain_actor_s * 1e6,
+            "td3_train_per_update_pair": train_s / (config.update_blocks * num_update) * 1e6},
+        "updates_per_s": {"critic": UPDATE_STEPS / critic_scan_s, "actor": UPDATE_STEPS / actor_scan_s},
+        "run_1m_floor_s": {
+            "sequential_env_steps": sequential,
+            "env": sequential * bare_ms / 1e3,
+            "updates": updates * (plain_critic_s + plain_actor_s),
+            "total": sequential * bare_ms / 1e3 + updates * (plain_critic_s + plain_actor_s)},
+    }
+
+
+# ---------------------------------------------------------------------------- full 1M-step run
+def full_run(task: str, seeds: int) -> dict:
+    """A whole 1M-step run with evaluation every 10k steps: wall-clock and compile time."""
+    config = bench_config(task)
+    env = make_env(task)
+    keys = jax.random.split(jax.random.PRNGKey(0), seeds)
+    eval_keys = jax.vmap(lambda s: jax.random.PRNGKey(s + 100))(jnp.arange(seeds))
+    if seeds == 1:
+        init = pgps.make_init(config, env)
+        step = pgps.make_generation_step(config, env)
+        evaluate = pgps.make_evaluate(config, env)
+        init_arg, eval_arg = keys[0], eval_keys[0]
+    else:
+        init = jax.jit(jax.vmap(functools.partial(pgps.init, config, env)))
+        step = jax.jit(jax.vmap(functools.partial(pgps.generation_step, config, env)),
+                       donate_argnums=0)
+        evaluate = jax.jit(jax.vmap(functools.partial(pgps.evaluate, config, env)))
+        init_arg, eval_arg = keys, eval_keys
+    start = time.perf_counter()
+    compile_s = 0.0
+    for fn, args in ((init, (init_arg,)),):
+        t = time.perf_counter()
+        fn.lower(*args).compile()
+        compile_s += time.perf_counter() - t
+    state = init(init_arg)
+    t = time.perf_counter()
+    step.lower(state).compile()
+    evaluate.lower(state, eval_arg).compile()
+    compile_s += time.perf_counter() - t
+    evals, generations, next_eval = [], 0, 0
+    while True:
+        total = int(np.min(jax.device_get(state.total_steps)))
+        if total >= next_eval:
+            evals.append((total, np.asarray(evaluate(state, eval_arg)["eval/mu_mean"]).tolist()))
+            next_eval = (total // EVAL_EVERY + 1) * EVAL_EVERY
+        if total >= TOTAL_STEPS:
+            break
+        state, _ = step(state)
+        generations += 1
+    wall = time.perf_counter() - start
+    return {"task": task, "seeds": seeds, "wall_s_including_compile": wall,
+            "compile_s": compile_s, "generations": generations, "evaluations": len(evals),
+            "final_eval_mu_mean": evals[-1][1], "eval_curve": evals[::10]}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--tasks", nargs="*", default=list(TASKS))
+    parser.add_argument("--full-run", nargs="*", default=[], metavar="TASK")
+    parser.add_argument("--seeds", nargs="*", type=int, default=[1, 5])
+    parser.add_argument("--out", default="benchmarks/results/throughput.json")
+    parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
+    args = parser.parse_args()
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
+    result = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit,
+              "components": [], "full_runs": []}
+    for task in args.tasks:
+        result["components"].append(components(task))
+        print(json.dumps(result["components"][-1], indent=1), flush=True)
+    for task in args.full_run:
+        for seeds in args.seeds:
+            result["full_runs"].append(full_run(task, seeds))
+            print(json.dumps(result["full_runs"][-1]), flush=True)
+    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(result, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
