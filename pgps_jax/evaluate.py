@@ -1,0 +1,131 @@
+"""`python -m pgps_jax.evaluate run=<dir>`: re-evaluate the μ actor a run saved.
+
+    python -m pgps_jax.evaluate run=runs/halfcheetah/seed0
+    python -m pgps_jax.evaluate run=runs/halfcheetah/seed0 episodes=50 seed=7 out=eval50.csv
+
+Loads `<dir>/config.yaml` and `<dir>/actor_mu.npz` (the μ, TD3 and elite actors of the run's
+last checkpoint, i.e. the final ones once the run has finished) and plays deterministic test
+episodes exactly as training does. With the defaults (the run's `eval_episodes`, start states
+from PRNGKey(seed + 100)) the μ line reproduces the run's last row of eval.csv.
+
+Arguments (key=value): run (required); episodes (default: the run's eval_episodes);
+seed (the evaluation key is PRNGKey(seed); default: the run's seed + 100);
+out (write μ's result as a CSV in the reference format: ,Step,Mean,Std,Reward1..).
+"""
+
+import functools
+import pathlib
+import sys
+from typing import Any, Callable, Mapping, Optional, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pgps_jax import run_dir as rundir
+from pgps_jax.config import PGPSConfig
+from pgps_jax.networks import actor_flattener
+from pgps_jax.rollout import run_episodes
+from pgps_jax.run_config import RunSettings, UsageError, from_dict
+from pgps_jax.td3 import TD3
+
+POLICIES = ("mu", "td3", "elite")
+"""The actors saved in actor_mu.npz, in the order `pgps.evaluate` batches them."""
+
+
+def parse_args(argv: Sequence[str], types: Mapping[str, Callable],
+               required: Sequence[str] = ()) -> dict:
+    """`key=value` arguments -> {key: types[key](value)}; UsageError naming a bad one."""
+    values = {}
+    for arg in argv:
+        key, sep, text = arg.partition("=")
+        if not sep or key not in types:
+            raise UsageError(f"unknown argument {arg!r}; valid: "
+                             + " ".join(f"{k}=..." for k in types))
+        try:
+            values[key] = types[key](text)
+        except ValueError:
+            raise UsageError(f"{key}={text!r} is invalid: expected {types[key].__name__}") from None
+    for key in required:
+        if key not in values:
+            raise UsageError(f"missing argument {key}=...; valid: "
+                             + " ".join(f"{k}=..." for k in types))
+    return values
+
+
+def load_run(path: str) -> tuple[RunSettings, PGPSConfig, dict]:
+    """(settings, config, saved actors) of the run directory `path`."""
+    directory = rundir.RunDir(path)
+    if not directory.path.is_dir():
+        raise UsageError(f"run={path}: no such run directory")
+    settings, config = from_dict(directory.read_config())
+    return settings, config, rundir.load_actors(directory / rundir.ACTOR)
+
+
+def actor_policy(config: PGPSConfig, env) -> Callable:
+    """(flat actor vector, obs) -> deterministic action."""
+    td3 = TD3(config, env.observation_size, env.action_size)
+    _, unflatten = actor_flattener(td3.actor_net, env.observation_size)
+    return lambda flat, obs: td3.actor_net.apply(unflatten(flat), obs)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 4, 5))
+def _returns(config: PGPSConfig, env, actors: jax.Array, key: jax.Array, episodes: int,
+             steps: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Returns [A, episodes], their means [A] and stds [A], computed as `pgps.evaluate` does
+    (one batch, the same start states for every actor)."""
+    batch = jnp.repeat(actors, episodes, axis=0)
+    reset_keys = jnp.tile(jax.random.split(key, episodes), (actors.shape[0], 1))
+    result = run_episodes(env, actor_policy(config, env), batch, reset_keys,
+                          jnp.full((batch.shape[0],), steps), steps, record=False)
+    per_actor = [result.returns[i * episodes:(i + 1) * episodes] for i in range(actors.shape[0])]
+    return (jnp.stack(per_actor), jnp.stack([jnp.mean(r) for r in per_actor]),
+            jnp.stack([jnp.std(r) for r in per_actor]))
+
+
+def evaluate_actors(config: PGPSConfig, env, actors: Mapping[str, np.ndarray], key: jax.Array,
+                    episodes: Optional[int] = None) -> dict[str, dict]:
+    """{name: {"returns": [episodes], "mean", "std"}} of deterministic episodes of
+    `eval_steps` steps from the start states drawn from `key`."""
+    episodes = config.eval_episodes if episodes is None else episodes
+    stacked = jnp.stack([jnp.asarray(a) for a in actors.values()])
+    returns, means, stds = jax.device_get(
+        _returns(config, env, stacked, key, episodes, config.eval_steps))
+    return {name: {"returns": returns[i], "mean": float(means[i]), "std": float(stds[i])}
+            for i, name in enumerate(actors)}
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    from pgps_jax.envs import make_env
+    try:
+        args = parse_args(argv, {"run": str, "episodes": int, "seed": int, "out": str},
+                          required=("run",))
+        settings, config, saved = load_run(args["run"])
+        if args.get("episodes", 1) < 1:
+            raise UsageError("episodes must be >= 1")
+        env = make_env(settings.env)
+    except (UsageError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    key_seed = args.get("seed", settings.seed + 100)
+    results = evaluate_actors(config, env, {p: saved[p] for p in POLICIES},
+                              jax.random.PRNGKey(key_seed), args.get("episodes"))
+    print(f"{args['run']}: {settings.env}, generation {saved['generation']}, "
+          f"{saved['env_steps']:,} env steps; {len(results['mu']['returns'])} episodes of "
+          f"{config.eval_steps} steps, key PRNGKey({key_seed})")
+    for name, r in results.items():
+        print(f"  {name:6s} {r['mean']:12.4f} ± {r['std']:10.4f}   "
+              + " ".join(f"{float(x):.2f}" for x in r["returns"]))
+    if "out" in args:
+        mu = results["mu"]
+        header = rundir.eval_columns(len(mu["returns"]))
+        line = [0, saved["env_steps"], mu["mean"], mu["std"], *map(float, mu["returns"])]
+        text = ",".join(header) + "\n" + ",".join(rundir.cell(c) for c in line) + "\n"
+        rundir.write_atomic(pathlib.Path(args["out"]).absolute(), text.encode())
+        print(f"wrote {args['out']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

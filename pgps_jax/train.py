@@ -1,0 +1,168 @@
+"""`python -m pgps_jax.train env=halfcheetah`: train PGPS on a task, with logs and checkpoints.
+
+    python -m pgps_jax.train env=hopper seed=3 total_steps=200000 pgps.q_filter=false
+    python -m pgps_jax.train env=hopper seed=3 resume=true        # continue that run
+    python -m pgps_jax.train resume=runs/hopper/seed3             # the same, by directory
+
+Hydra composes `configs/config.yaml` with `configs/env/<task>.yaml` and the command line; the
+result is turned once into `RunSettings` and the frozen `PGPSConfig` (`pgps_jax.run_config`).
+`plan` then decides, before anything is trained or written, between a new run and a resumed
+one; `pgps_jax.trainer` runs the loop. The heavy modules (JAX, orbax) are imported only once
+the command line is known to be good, so a mistake is reported at once.
+
+Exit status: 0 done, 1 the run failed (a non-finite metric), 2 a bad setting or command line
+(nothing was trained or written), 130 stopped by SIGINT/SIGTERM after writing a checkpoint.
+"""
+
+import copy
+import dataclasses
+import sys
+from typing import Any, Mapping, Optional, Sequence
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from pgps_jax import run_dir as rundir
+from pgps_jax.config import PGPSConfig
+from pgps_jax.run_config import (CONFIG_DIR, IDENTITY_KEYS, RunSettings, UsageError,
+                                 check_overrides, differences, explicitly_set, flatten,
+                                 from_dict, override_keys, register_structured_configs)
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """What a training invocation will do, decided before anything is trained."""
+
+    run: RunSettings
+    config: PGPSConfig
+    resolved: dict
+    """The resolved configuration (saved in the run directory and in every checkpoint)."""
+    directory: rundir.RunDir
+    resume_step: Optional[int]
+    """The checkpoint (generation) to continue from, or None for a new run."""
+
+
+def _set(values: dict, dotted: str, value: Any) -> None:
+    node = values
+    *parents, last = dotted.split(".")
+    for part in parents:
+        node = node.setdefault(part, {})
+    node[last] = value
+
+
+def _checkpointed_config(directory: rundir.RunDir) -> tuple[int, dict]:
+    """(latest checkpoint's generation, the resolved configuration saved with it)."""
+    from pgps_jax.checkpoint import Checkpoints
+    checkpoints = Checkpoints(directory.checkpoints)
+    try:
+        step = checkpoints.latest_step()
+        return step, checkpoints.meta(step)["config"]
+    finally:
+        checkpoints.close()
+
+
+def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
+    """Decides between a new run and a resumed one; raises UsageError before any training.
+
+    resume=false: a new run in run_dir, which must not hold one already.
+    resume=true: continue run_dir's latest checkpoint (a new run if it has none); the
+      settings in IDENTITY_KEYS must equal the checkpoint's.
+    resume=<dir>: continue <dir> with its checkpointed settings; settings given on the command
+      line replace them, and must not change any in IDENTITY_KEYS.
+    """
+    values = copy.deepcopy(dict(values))
+    run, config = from_dict(values)
+    if run.resume is False:
+        directory = rundir.RunDir(run.run_dir)
+        directory.ensure_writable()
+        if directory.holds_run():
+            raise UsageError(
+                f"{directory.path} already holds a run; continue it with resume=true, or "
+                f"choose another directory with run_dir=... (or output_dir=...)")
+        return Plan(run, config, values, directory, None)
+
+    by_path = run.resume is not True
+    directory = rundir.RunDir(run.resume if by_path else run.run_dir)
+    if by_path and not directory.path.is_dir():
+        raise UsageError(f"resume={run.resume}: no such run directory")
+    directory.ensure_writable()
+    if not directory.has_checkpoint():
+        if by_path:
+            raise UsageError(f"resume={run.resume}: {directory.checkpoints} holds no checkpoint")
+        print(f"resume=true: no checkpoint in {directory.path}; starting a new run there",
+              file=sys.stderr)
+        return Plan(run, config, values, directory, None)
+
+    step, saved = _checkpointed_config(directory)
+    effective = values
+    if by_path:
+        explicit = [k for k in override_keys(overrides) if k not in ("resume", "run_dir")]
+        effective = copy.deepcopy(saved)
+        for key, value in flatten(values).items():
+            if explicitly_set(key, explicit):
+                _set(effective, key, value)
+        effective["resume"], effective["run_dir"] = run.resume, str(directory.path)
+    diffs = differences(saved, effective, IDENTITY_KEYS)
+    if diffs:
+        raise UsageError(
+            f"the checkpoint in {directory.checkpoints} was made with a different "
+            f"configuration; refusing to resume it. Differing fields:\n  " + "\n  ".join(diffs)
+            + "\nResume with the checkpoint's settings, or start a new run in another run_dir.")
+    run, config = from_dict(effective)
+    run = dataclasses.replace(run, run_dir=str(directory.path))
+    return Plan(run, config, effective, directory, step)
+
+
+def _error(message: str) -> None:
+    print(f"error: {message}", file=sys.stderr)
+
+
+def run(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> int:
+    """Plans and trains from a resolved configuration dict; returns the exit status."""
+    try:
+        p = plan(values, overrides)
+        from pgps_jax import trainer
+        try:
+            outcome = trainer.train(p)
+        except trainer.NonFiniteError as e:
+            _error(str(e))
+            return EXIT_FAILED
+        return EXIT_OK if outcome == "done" else EXIT_INTERRUPTED
+    except UsageError as e:
+        _error(str(e))
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        _error("aborted by a second Ctrl-C; the checkpoints written before are intact")
+        return EXIT_INTERRUPTED
+
+
+register_structured_configs()
+
+
+@hydra.main(config_path=str(CONFIG_DIR), config_name="config", version_base="1.3")
+def _hydra_main(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+    try:
+        values = OmegaConf.to_container(cfg, resolve=True)
+    except Exception as e:  # an interpolation that cannot be resolved
+        _error(f"cannot resolve the configuration: {e}")
+        sys.exit(EXIT_USAGE)
+    code = run(values, list(HydraConfig.get().overrides.task))
+    if code != EXIT_OK:
+        sys.exit(code)
+
+
+def main() -> None:
+    """Console entry: check the overrides (unknown keys and tasks), then let Hydra compose."""
+    try:
+        check_overrides(sys.argv[1:])
+    except UsageError as e:
+        _error(str(e))
+        sys.exit(EXIT_USAGE)
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()

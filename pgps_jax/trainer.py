@@ -1,0 +1,288 @@
+"""The host-side training loop of `python -m pgps_jax.train` (see `pgps_jax.train`).
+
+It calls the jitted `generation_step` (compiled once, state donated) and fetches each
+generation's metrics with one `jax.device_get`, then writes the logs and checkpoints. The
+test evaluation runs inside `generation_step`, in the rollout's batch, whenever the env steps
+have reached a multiple of `eval_every` (and in the first generation, after the warm-up); it
+evaluates the state the generation starts from, so its row carries that state's step count.
+After the last generation the final state is evaluated with `pgps.evaluate`. Checkpoints are
+written every `checkpoint_every` generations, at the end and on SIGINT / SIGTERM. Nothing here
+runs inside jit. The run directory's contents are listed in `pgps_jax.run_dir`.
+"""
+
+import functools
+import shutil
+import signal
+import sys
+import time
+from typing import TYPE_CHECKING, Any, Mapping, Optional
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+from pgps_jax import pgps
+from pgps_jax import run_dir as rundir
+from pgps_jax.checkpoint import Checkpoints
+from pgps_jax.networks import flatten as flatten_params
+from pgps_jax.run_config import UsageError
+
+if TYPE_CHECKING:
+    from pgps_jax.train import Plan
+
+# Checked first, so the error names the loss when a NaN has spread to other metrics.
+_PRIORITY_METRICS = ("td3/critic_loss", "td3/actor_loss", "td3/beta")
+
+
+class NonFiniteError(Exception):
+    """A generation produced a NaN/inf metric; the run stops without checkpointing it."""
+
+
+def _defined(key: str, metrics: Mapping[str, Any]) -> bool:
+    """Whether `key` carries a value this generation: `td3/return` is NaN by design when the
+    TD3 actor did not play, `eval/*` when no evaluation was due."""
+    if key == "td3/return":
+        return bool(metrics.get("td3/in_population", True))
+    if key.startswith("eval/"):
+        return bool(metrics.get("eval/due", True))
+    return True
+
+
+def first_non_finite(metrics: Mapping[str, Any]) -> Optional[str]:
+    """The first metric holding NaN or inf, losses first; None if all are finite."""
+    order = [k for k in _PRIORITY_METRICS if k in metrics]
+    order += sorted(k for k in metrics if k not in _PRIORITY_METRICS)
+    for key in order:
+        if not _defined(key, metrics):
+            continue
+        value = np.asarray(metrics[key])
+        if np.issubdtype(value.dtype, np.inexact) and not np.all(np.isfinite(value)):
+            return key
+    return None
+
+
+class StopRequest:
+    """Turns the first SIGINT/SIGTERM into a request to checkpoint and stop after the current
+    generation; a second Ctrl-C aborts at once (KeyboardInterrupt)."""
+
+    def __init__(self):
+        self.requested: Optional[str] = None
+        self._previous = {}
+
+    def __enter__(self):
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        if self.requested is not None and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.requested = signal.Signals(signum).name
+        tqdm.write(f"\n{self.requested}: stopping after this generation and writing a "
+                   f"checkpoint (Ctrl-C again to abort without one)", file=sys.stderr)
+
+    def __exit__(self, *exc):
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        return False
+
+
+class Trainer:
+    """The loop's state on the host: logs, checkpoints, counters, progress bar."""
+
+    def __init__(self, p: "Plan", env):
+        self.p, self.run, self.config, self.dir = p, p.run, p.config, p.directory
+        self.env = env
+        self.generation_step = pgps.make_generation_step(self.config, env)
+        self.evaluate = pgps.make_evaluate(self.config, env)
+        self.checkpoints = Checkpoints(self.dir.checkpoints, self.run.keep_checkpoints)
+        self.metrics_log = rundir.CsvLog(self.dir / rundir.METRICS,
+                                         rundir.metrics_columns(self.config.pop_size))
+        self.eval_log = rundir.CsvLog(self.dir / rundir.EVAL,
+                                      rundir.eval_columns(self.config.eval_episodes))
+        self.policies_log = rundir.CsvLog(self.dir / rundir.EVAL_POLICIES,
+                                          rundir.eval_policies_columns())
+        self.logs = {rundir.METRICS: self.metrics_log, rundir.EVAL: self.eval_log,
+                     rundir.EVAL_POLICIES: self.policies_log}
+        self.tensorboard = None
+        self.bar = None
+        self.generation = self.total = 0
+        self.elapsed_before = 0.0
+        self._clock = time.perf_counter()
+        self.last_saved: Optional[int] = None
+        self.eval_rows: list[dict] = []
+
+    # --- start ------------------------------------------------------------------------
+    def start(self):
+        """The state to train from: a new one (after the warm-up) or a checkpoint's.
+
+        Evaluations start from PRNGKey(seed + 100), as in the paper, every time.
+        """
+        seed_key, eval_key = (jax.random.PRNGKey(self.run.seed),
+                              jax.random.PRNGKey(self.run.seed + 100))
+        if self.p.resume_step is None:
+            for log in self.logs.values():
+                log.start()
+            shutil.rmtree(self.dir / rundir.TENSORBOARD, ignore_errors=True)
+            self.tensorboard = rundir.TensorBoard(self.dir / rundir.TENSORBOARD)
+            self._open_bar()
+            state = pgps.make_init(self.config, self.env)(seed_key, eval_key)
+            self.total = int(state.total_steps)
+            self.bar.update(min(self.total, self.run.total_steps))
+            return state
+        abstract = jax.eval_shape(functools.partial(pgps.init, self.config, self.env),
+                                  seed_key, eval_key)
+        state, meta = self.checkpoints.restore(self.p.resume_step, abstract)
+        for name, log in self.logs.items():
+            log.reopen(meta["logs"][name])
+        self.generation, self.total = meta["generation"], meta["total_steps"]
+        self.elapsed_before = meta["elapsed_s"]
+        self.last_saved = self.p.resume_step
+        self.tensorboard = rundir.TensorBoard(self.dir / rundir.TENSORBOARD,
+                                              purge_step=self.total + 1)
+        self.eval_rows = self.policies_log.rows()
+        self._open_bar()
+        tqdm.write(f"resumed {self.dir.path} at generation {self.generation} "
+                   f"({self.total:,} env steps)")
+        return state
+
+    def _open_bar(self):
+        self.bar = tqdm(total=self.run.total_steps, initial=min(self.total, self.run.total_steps),
+                        unit="step", unit_scale=True, dynamic_ncols=True, smoothing=0.3,
+                        disable=not self.run.progress, desc=f"{self.run.env} seed {self.run.seed}")
+        self.bar.set_postfix_str(self._last_eval_text(), refresh=False)
+
+    def elapsed(self) -> float:
+        """Seconds of training, over all sessions of this run."""
+        return self.elapsed_before + time.perf_counter() - self._clock
+
+    # --- one generation ---------------------------------------------------------------
+    def step(self, state):
+        """One generation, its logs, and the evaluation / checkpoint when due."""
+        start = time.perf_counter()
+        state, metrics = self.generation_step(state)
+        m = jax.device_get(metrics)
+        seconds = time.perf_counter() - start
+        previous = self.total
+        self.generation, self.total = int(m["gen/generation"]), int(m["gen/total_steps"])
+        steps_per_s = int(m["gen/interaction_steps"]) / seconds
+        n = self.config.pop_size
+        self.metrics_log.write(
+            [m[k] for _, k in rundir.METRICS_HEAD] + [m[f"pop/return_{i}"] for i in range(n)]
+            + [m[k] for _, k in rundir.METRICS_TAIL] + [steps_per_s, self.elapsed()])
+        members = {f"pop/return_{i}" for i in range(n)}
+        self.tensorboard.scalars(
+            {**{k: v for k, v in m.items() if k not in members and not k.startswith("eval/")
+                and _defined(k, m)}, "perf/steps_per_s": steps_per_s}, self.total)
+        bad = first_non_finite(m)
+        if bad is not None:
+            where = (f"the last good checkpoint is generation {self.last_saved} in "
+                     f"{self.dir.checkpoints}" if self.last_saved is not None
+                     else "no checkpoint had been written yet")
+            raise NonFiniteError(
+                f"generation {self.generation} ({self.total:,} env steps) produced a "
+                f"non-finite {bad} = {np.asarray(m[bad])}; stopping. This state was not "
+                f"checkpointed; {where}.")
+        if bool(m["eval/due"]):
+            self._record_evaluation(int(m["eval/step"]), m)
+        budget = self.run.total_steps
+        self.bar.update(min(self.total, budget) - min(previous, budget))
+        self.bar.set_postfix_str(f"gen {self.generation}, T {int(m['gen/episode_limit'])}, "
+                                 + self._last_eval_text(), refresh=False)
+        done = self.total >= budget
+        if done:
+            self.final_evaluation(state)
+        if self.generation % self.run.checkpoint_every == 0 or done:
+            self.save(state)
+        return state
+
+    def final_evaluation(self, state):
+        """Evaluates the state the run ends with (no later generation will)."""
+        self._record_evaluation(self.total, jax.device_get(self.evaluate(state)))
+
+    def _last_eval_text(self) -> str:
+        if not self.eval_rows:
+            return "eval -"
+        last = self.eval_rows[-1]
+        return f"eval {float(last['mu_mean']):.1f} @ {int(float(last['Step'])):,}"
+
+    def _record_evaluation(self, step: int, e: Mapping[str, Any]):
+        """Writes the test returns of μ, the TD3 actor and the elite at env step `step`."""
+        if self.eval_rows and int(float(self.eval_rows[-1]["Step"])) == step:
+            return  # already recorded (a finished run extended with a larger total_steps)
+        self.eval_log.write([len(self.eval_rows), step, e["eval/mu_mean"], e["eval/mu_std"],
+                             *e["eval/mu_returns"]])
+        row = [step] + [e[f"eval/{p}_{s}"] for p in rundir.EVAL_POLICY_NAMES
+                        for s in ("mean", "std")]
+        self.policies_log.write(row)
+        self.eval_rows.append(dict(zip(rundir.eval_policies_columns(), row)))
+        self.tensorboard.scalars({k: v for k, v in e.items()
+                                  if k.startswith("eval/") and k != "eval/due"
+                                  and k != "eval/step" and np.ndim(v) == 0}, step)
+        rundir.plot_learning_curve(self.dir / rundir.CURVE, self.eval_rows,
+                                   f"PGPS {self.run.env}, seed {self.run.seed}")
+        self.bar.set_postfix_str(f"gen {self.generation}, " + self._last_eval_text(),
+                                 refresh=False)
+        tqdm.write(f"steps {step:>10,}  eval μ "
+                   f"{float(e['eval/mu_mean']):10.2f} ± {float(e['eval/mu_std']):8.2f}   "
+                   f"TD3 {float(e['eval/td3_mean']):10.2f}   elite "
+                   f"{float(e['eval/elite_mean']):10.2f}")
+
+    # --- checkpoints ------------------------------------------------------------------
+    def save(self, state):
+        """A checkpoint of the state with the logs' sizes; then the μ actor file."""
+        for log in self.logs.values():
+            log.sync()
+        self.tensorboard.flush()
+        meta = {"config": self.p.resolved, "generation": self.generation,
+                "total_steps": self.total, "elapsed_s": self.elapsed(),
+                "logs": {name: log.size() for name, log in self.logs.items()},
+                "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        self.checkpoints.save(self.generation, state, meta)
+        self.last_saved = self.generation
+        actors = jax.device_get({"mu": state.cem.mean, "elite": state.cem.elite,
+                                 "td3": flatten_params(state.td3.actor)})
+        rundir.save_actors(self.dir / rundir.ACTOR, self.generation, self.total, **actors)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+        if self.tensorboard is not None:
+            self.tensorboard.close()
+        for log in self.logs.values():
+            log.close()
+        self.checkpoints.close()
+
+
+def train(p: "Plan") -> str:
+    """Runs a Plan to the end of its budget or a stop request: returns "done" or the signal's
+    name. Raises NonFiniteError (nothing checkpointed after the last good generation)."""
+    from pgps_jax.envs import make_env
+    try:
+        env = make_env(p.run.env)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    p.directory.write_config(p.resolved)
+    trainer = Trainer(p, env)
+    try:
+        with StopRequest() as stop:
+            state = trainer.start()
+            while trainer.total < p.run.total_steps and stop.requested is None:
+                state = trainer.step(state)
+            if trainer.last_saved != trainer.generation:
+                trainer.save(state)
+        trainer.bar.close()
+        if stop.requested is not None and trainer.total < p.run.total_steps:
+            print(f"{stop.requested}: stopped at generation {trainer.generation} "
+                  f"({trainer.total:,} env steps); checkpoint written to "
+                  f"{trainer.dir.checkpoints}. Continue with resume=true "
+                  f"(or resume={trainer.dir.path}).", file=sys.stderr)
+            return stop.requested
+        last = trainer.eval_rows[-1] if trainer.eval_rows else None
+        summary = (f"final μ return {float(last['mu_mean']):.2f} ± {float(last['mu_std']):.2f}"
+                   if last else "no evaluation")
+        print(f"done: {trainer.total:,} env steps in {trainer.generation} generations, "
+              f"{trainer.elapsed():.0f} s of training; {summary}; outputs in {trainer.dir.path}")
+        return "done"
+    finally:
+        trainer.close()

@@ -1,0 +1,142 @@
+"""checkpoint + run_dir: exact TrainState round trip, keep-last-N, atomicity, log truncation."""
+
+import functools
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from pgps_jax import pgps
+from pgps_jax import run_dir as rundir
+from pgps_jax.checkpoint import Checkpoints
+from pgps_jax.config import PGPSConfig
+from pgps_jax.envs import make_env
+from pgps_jax.run_config import UsageError
+
+TINY = PGPSConfig(pop_size=4, top_k=2, actor_hidden=(8,), critic_hidden=(8,), buffer_size=400,
+                  warmup_steps=40, t_init=10, t_max=20, t_interval=100, eval_steps=10,
+                  sample_ratio=2, batch_size=8, ss1_size=4, ss2_size=8, q_filter_start=60)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    env = make_env("point")
+    state = pgps.make_init(TINY, env)(jax.random.PRNGKey(0))
+    abstract = jax.eval_shape(functools.partial(pgps.init, TINY, env), jax.random.PRNGKey(0))
+    return env, state, abstract
+
+
+def _equal(a, b) -> bool:
+    leaves = jax.tree.leaves(jax.tree.map(
+        lambda x, y: bool(np.array_equal(np.asarray(x), np.asarray(y)) and x.dtype == y.dtype), a, b))
+    return all(leaves) and jax.tree.structure(a) == jax.tree.structure(b)
+
+
+def test_round_trip_is_exact_and_keeps_the_last_n(setup, tmp_path):
+    env, state, abstract = setup
+    checkpoints = Checkpoints(tmp_path / "ckpt", keep=3)
+    meta = {"config": {"seed": 0, "pgps": {"pop_size": 4}}, "generation": 5, "logs": {"m": 10}}
+    for step in (1, 2, 3, 4, 5):
+        checkpoints.save(step, state, {**meta, "generation": step})
+    assert checkpoints.steps() == [3, 4, 5] and checkpoints.latest_step() == 5
+    restored, restored_meta = checkpoints.restore(5, abstract)
+    assert isinstance(restored, pgps.TrainState)
+    assert _equal(restored, state)  # the buffer, optimiser states, β, counters and key
+    assert restored_meta == {**meta, "generation": 5}
+    assert checkpoints.meta(4)["generation"] == 4
+    checkpoints.close()
+
+
+def test_a_half_written_checkpoint_is_ignored_and_removed(setup, tmp_path):
+    env, state, abstract = setup
+    directory = tmp_path / "ckpt"
+    checkpoints = Checkpoints(directory, keep=3)
+    checkpoints.save(1, state, {"generation": 1})
+    checkpoints.close()
+    # what a process killed mid-save leaves: orbax's temporary directory, never renamed
+    partial = directory / "2.orbax-checkpoint-tmp-1234567"
+    (partial / "state").mkdir(parents=True)
+    (partial / "state" / "junk").write_bytes(b"\0" * 10)
+    reopened = Checkpoints(directory, keep=3)
+    assert reopened.steps() == [1] and reopened.latest_step() == 1
+    assert _equal(reopened.restore(1, abstract)[0], state)
+    reopened.save(2, state, {"generation": 2})  # the resumed run's next save
+    assert not partial.exists()  # removed by the reopened manager
+    assert reopened.steps() == [1, 2] and reopened.meta(2) == {"generation": 2}
+    reopened.close()
+
+
+def test_continuing_from_a_restored_state_matches(setup, tmp_path):
+    env, state, abstract = setup
+    step = pgps.make_generation_step(TINY, env, donate=False)
+    checkpoints = Checkpoints(tmp_path / "ckpt")
+    checkpoints.save(0, state, {})
+    restored, _ = checkpoints.restore(0, abstract)
+    a, metrics_a = step(state)
+    b, metrics_b = step(restored)
+    assert _equal(a, b)
+    assert jax.device_get(metrics_a)["td3/critic_loss"] == jax.device_get(metrics_b)["td3/critic_loss"]
+    checkpoints.close()
+
+
+def test_csv_log_reopen_cuts_to_the_checkpointed_size(tmp_path):
+    log = rundir.CsvLog(tmp_path / "m.csv", ["a", "b"])
+    log.start()
+    log.write([1, 0.5])
+    log.sync()
+    size = log.size()
+    log.write([2, float("nan")])
+    log.close()
+    with open(tmp_path / "m.csv", "a") as f:
+        f.write("3,0.12")  # a line cut by SIGKILL
+    log = rundir.CsvLog(tmp_path / "m.csv", ["a", "b"])
+    log.reopen(size)
+    log.write([2, True])
+    log.close()
+    assert (tmp_path / "m.csv").read_text() == "a,b\n1,0.5\n2,1\n"
+
+
+def test_csv_log_reopen_refuses_a_shorter_or_different_file(tmp_path):
+    log = rundir.CsvLog(tmp_path / "m.csv", ["a", "b"])
+    log.start()
+    log.close()
+    with pytest.raises(UsageError, match="fewer than"):
+        rundir.CsvLog(tmp_path / "m.csv", ["a", "b"]).reopen(1000)
+    with pytest.raises(UsageError, match="columns"):
+        rundir.CsvLog(tmp_path / "m.csv", ["a", "c"]).reopen(4)
+
+
+def test_cells_keep_full_precision():
+    x = np.float32(0.1)
+    assert float(rundir.cell(x)) == float(x)
+    assert rundir.cell(np.bool_(True)) == "1" and rundir.cell(np.int32(7)) == "7"
+    assert rundir.cell(float("nan")) == "nan"
+
+
+def test_actor_file_round_trip(tmp_path):
+    path = tmp_path / rundir.ACTOR
+    mu = np.arange(5, dtype=np.float32)
+    rundir.save_actors(path, 3, 1234, mu=mu, td3=mu + 1, elite=mu + 2)
+    loaded = rundir.load_actors(path)
+    assert loaded["generation"] == 3 and loaded["env_steps"] == 1234
+    np.testing.assert_array_equal(loaded["elite"], mu + 2)
+    assert not list(tmp_path.glob(".*tmp"))  # the temporary file was renamed
+    with pytest.raises(UsageError, match="no saved actor"):
+        rundir.load_actors(tmp_path / "missing.npz")
+
+
+def test_write_config_and_read_back(tmp_path):
+    directory = rundir.RunDir(tmp_path / "run")
+    directory.ensure_writable()
+    values = {"pgps": {"actor_hidden": [32, 32]}, "env": {"name": "point"}, "seed": 1}
+    directory.write_config(values)
+    assert directory.read_config() == values
+    assert list(json.loads(json.dumps(directory.read_config()))) == ["env", "seed", "pgps"]
+
+
+def test_ensure_writable_names_the_directory(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    with pytest.raises(UsageError, match="cannot write the run directory .*a_file/run"):
+        rundir.RunDir(blocker / "run").ensure_writable()

@@ -1,0 +1,147 @@
+"""run_config: Hydra YAML -> (RunSettings, PGPSConfig), override checks, config differences."""
+
+import dataclasses
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from pgps_jax.config import PGPSConfig, for_task
+from pgps_jax.run_config import (CONFIG_DIR, IDENTITY_KEYS, PGPS_FIELDS, UsageError,
+                                 check_overrides, differences, env_choices, explicitly_set,
+                                 from_dict, override_keys, pgps_config,
+                                 register_structured_configs)
+from pgps_jax.trainer import first_non_finite
+
+MUJOCO_TASKS = ("halfcheetah", "hopper", "walker2d", "ant", "swimmer")
+register_structured_configs()
+
+
+def composed(*overrides: str) -> dict:
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=list(overrides))
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def test_defaults_are_the_issue_defaults():
+    run, config = from_dict(composed())
+    assert (run.env, run.seed, run.total_steps, run.eval_every) == ("halfcheetah", 0, 1_000_000, 10_000)
+    assert (run.keep_checkpoints, run.resume, run.run_dir) == (3, False, "runs/halfcheetah/seed0")
+    assert config == for_task("halfcheetah")
+
+
+@pytest.mark.parametrize("task", MUJOCO_TASKS)
+def test_env_yaml_gives_table_4(task):
+    run, config = from_dict(composed(f"env={task}"))
+    assert run.env == task
+    assert config == for_task(task)
+
+
+def test_every_pgps_field_is_in_the_composed_config():
+    assert set(composed()["pgps"]) == set(PGPS_FIELDS)
+    assert set(env_choices()) == set(MUJOCO_TASKS) | {"point"}
+
+
+def test_issue_overrides():
+    run, config = from_dict(composed("env=hopper", "seed=3", "total_steps=200000",
+                                     "pgps.q_filter=false", "pgps.pop_size=4"))
+    assert (run.env, run.seed, run.total_steps, run.run_dir) == ("hopper", 3, 200_000, "runs/hopper/seed3")
+    assert config == for_task("hopper", q_filter=False, pop_size=4)
+
+
+def test_point_preset_is_tiny_and_valid():
+    run, config = from_dict(composed("env=point"))
+    assert config.actor_hidden == config.critic_hidden == (32, 32)
+    assert config.pop_size * config.t_max <= config.buffer_size <= 10_000
+    assert run.total_steps <= 10_000
+
+
+@pytest.mark.parametrize("args, words", [
+    (["pgps.foo=1"], ["'pgps.foo'", "pop_size", "q_filter"]),
+    (["foo=1"], ["'foo'", "seed", "total_steps", "pgps.<field>"]),
+    (["env=humanoid"], ["'humanoid'", "halfcheetah", "hopper", "walker2d", "ant", "swimmer"]),
+    (["env.name=hopper"], ["env=<task>"]),
+])
+def test_check_overrides_names_the_key_and_the_choices(args, words):
+    with pytest.raises(UsageError) as err:
+        check_overrides(args)
+    for word in words:
+        assert word in str(err.value)
+
+
+def test_check_overrides_accepts_valid_and_hydra_flags():
+    check_overrides(["env=hopper", "seed=3", "pgps.q_filter=false", "resume=true",
+                     "hydra.verbose=true", "--cfg", "job"])
+
+
+@pytest.mark.parametrize("values, words", [
+    ({"pop_size": "ten"}, ["pgps.pop_size", "integer"]),
+    ({"q_filter": 1}, ["pgps.q_filter", "true or false"]),
+    ({"actor_hidden": 64}, ["pgps.actor_hidden"]),
+    ({"top_k": 99}, ["top_k", "99"]),
+    ({"bogus": 1}, ["pgps.bogus", "pop_size"]),
+])
+def test_bad_pgps_values_name_the_field(values, words):
+    with pytest.raises(UsageError) as err:
+        pgps_config(values)
+    for word in words:
+        assert word in str(err.value)
+
+
+def test_pgps_config_coerces_yaml_types():
+    config = pgps_config({"buffer_size": 50000.0, "actor_hidden": [32, 32], "tau": 1})
+    assert config.buffer_size == 50000 and isinstance(config.buffer_size, int)
+    assert config.actor_hidden == (32, 32) and config.tau == 1.0
+
+
+@pytest.mark.parametrize("key, value, words", [
+    ("total_steps", 0, ["total_steps=0", ">= 1"]),
+    ("eval_every", "often", ["eval_every", "integer"]),
+    ("resume", 3, ["resume"]),
+])
+def test_bad_run_settings_name_the_key(key, value, words):
+    values = composed("env=point")
+    values[key] = value
+    with pytest.raises(UsageError) as err:
+        from_dict(values)
+    for word in words:
+        assert word in str(err.value)
+
+
+def test_differences_name_the_fields():
+    saved = composed("env=point")
+    now = composed("env=point", "pgps.q_filter=false", "seed=4", "total_steps=9999")
+    lines = differences(saved, now, IDENTITY_KEYS)
+    assert len(lines) == 2
+    assert any(l.startswith("pgps.q_filter: checkpoint True, now False") for l in lines)
+    assert any(l.startswith("seed: checkpoint 0, now 4") for l in lines)
+    assert differences(saved, composed("env=point"), IDENTITY_KEYS) == []
+    # 5 and 5.0 are the same value; True and 1 are not
+    assert differences({"a": 5}, {"a": 5.0}, ["a"]) == []
+    assert differences({"a": True}, {"a": 1}, ["a"]) != []
+
+
+def test_explicitly_set_covers_groups():
+    keys = override_keys(["env=hopper", "pgps.pop_size=4", "seed=1"])
+    assert keys == ["env", "pgps.pop_size", "seed"]
+    assert explicitly_set("env.name", keys) and explicitly_set("pgps.pop_size", keys)
+    assert not explicitly_set("pgps.top_k", keys)
+
+
+def test_first_non_finite_names_the_loss_first():
+    metrics = {"a/x": 1.0, "td3/actor_loss": float("nan"), "td3/critic_loss": float("inf"),
+               "td3/return": float("nan"), "td3/in_population": False}
+    assert first_non_finite(metrics) == "td3/critic_loss"
+    assert first_non_finite({"td3/return": float("nan"), "td3/in_population": False}) is None
+    assert first_non_finite({"td3/return": float("nan"), "td3/in_population": True}) == "td3/return"
+    assert first_non_finite({"gen/generation": 3, "x": 1.5}) is None
+    # eval/* is NaN by design when no evaluation was due
+    assert first_non_finite({"eval/due": False, "eval/mu_mean": float("nan")}) is None
+    assert first_non_finite({"eval/due": True, "eval/mu_mean": float("nan")}) == "eval/mu_mean"
+
+
+def test_eval_every_is_set_in_one_place():
+    run, config = from_dict(composed("env=point", "eval_every=123"))
+    assert run.eval_every == config.eval_every == 123
+    with pytest.raises(UsageError, match="eval_every=N"):
+        check_overrides(["pgps.eval_every=5"])

@@ -1,0 +1,220 @@
+"""`python -m pgps_jax.train` end to end on a tiny run: every output file and its columns,
+re-evaluation, bad inputs (message, non-zero exit, nothing half-written) and a NaN stop."""
+
+import pathlib
+
+import imageio.v3 as iio
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from pgps_jax import pgps, train
+from pgps_jax import run_dir as rundir
+from pgps_jax.run_config import CONFIG_DIR, from_dict
+
+from train_cli import (checkpoint_steps, leftovers, read_csv, run, tensorboard_tags, tiny)
+
+TOTAL, EVAL_EVERY, WARMUP, POP = 3000, 400, 200, 4
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory) -> pathlib.Path:
+    return tmp_path_factory.mktemp("jax_cache")
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, cache):
+    """An uninterrupted tiny run with the progress bar on."""
+    work = tmp_path_factory.mktemp("work")
+    run_dir = work / "ref"
+    result = run("train", tiny("progress=true", f"run_dir={run_dir}"), cache, work)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return run_dir, result
+
+
+def test_progress_bar_and_summary(reference):
+    _, result = reference
+    assert "step/s" in result.stderr and "eval" in result.stderr  # tqdm: rate, ETA, last eval
+    assert f"/{TOTAL / 1000:.2f}k" in result.stderr or f"/{TOTAL}" in result.stderr
+    assert "done:" in result.stdout and "final μ return" in result.stdout
+
+
+def test_run_directory_holds_every_output(reference):
+    run_dir, _ = reference
+    for name in (rundir.CONFIG, rundir.METRICS, rundir.EVAL, rundir.EVAL_POLICIES, rundir.CURVE,
+                 rundir.ACTOR, rundir.TENSORBOARD, rundir.CHECKPOINTS):
+        assert (run_dir / name).exists(), name
+    assert leftovers(run_dir) == []
+
+
+def test_resolved_config_is_saved(reference):
+    run_dir, _ = reference
+    settings, config = from_dict(rundir.RunDir(run_dir).read_config())
+    assert (settings.env, settings.seed, settings.total_steps) == ("point", 1, TOTAL)
+    assert (config.pop_size, config.actor_hidden, config.warmup_steps) == (POP, (32, 32), WARMUP)
+
+
+def test_metrics_csv_has_one_row_per_generation(reference):
+    run_dir, _ = reference
+    header, rows = read_csv(run_dir / rundir.METRICS)
+    assert header == rundir.metrics_columns(POP)
+    for column in ("env_steps", "T", "return_0", "return_3", "elite_return", "td3_return",
+                   "fell_behind", "beta", "critic_loss", "actor_loss", "steps_per_s"):
+        assert column in header
+    assert [int(r["generation"]) for r in rows] == list(range(1, len(rows) + 1))
+    steps = [int(r["env_steps"]) for r in rows]
+    assert steps == sorted(steps) and steps[-1] >= TOTAL > steps[-2]
+    assert all(20 <= int(r["T"]) <= 50 for r in rows)
+    assert all(r["fell_behind"] in ("0", "1") for r in rows)
+    assert all(np.isfinite(float(r["critic_loss"])) and float(r["steps_per_s"]) > 0 for r in rows)
+    elite = [float(r["elite_return"]) for r in rows]
+    best = [max(float(r[f"return_{i}"]) for i in range(POP)) for r in rows]
+    assert elite == best
+
+
+def test_eval_csv_is_in_the_reference_format(reference):
+    run_dir, _ = reference
+    header, rows = read_csv(run_dir / rundir.EVAL)
+    assert header == ["", "Step", "Mean", "Std"] + [f"Reward{i}" for i in range(1, 11)]
+    assert [int(r[""]) for r in rows] == list(range(len(rows)))
+    # at the start (after the warm-up), at each crossing of a multiple of eval_every, at the end
+    _, metrics = read_csv(run_dir / rundir.METRICS)
+    steps = [WARMUP] + [int(r["env_steps"]) for r in metrics]
+    expected = [WARMUP] + [s for p, s in zip(steps, steps[1:]) if s // EVAL_EVERY > p // EVAL_EVERY]
+    if expected[-1] != steps[-1]:
+        expected.append(steps[-1])
+    assert [int(r["Step"]) for r in rows] == expected
+    for r in rows:
+        rewards = np.array([float(r[f"Reward{i}"]) for i in range(1, 11)])
+        assert float(r["Mean"]) == pytest.approx(rewards.mean(), rel=1e-5, abs=1e-5)
+        assert float(r["Std"]) == pytest.approx(rewards.std(), rel=1e-4, abs=1e-5)
+    _, policies = read_csv(run_dir / rundir.EVAL_POLICIES)
+    assert [p["Step"] for p in policies] == [r["Step"] for r in rows]
+    assert [p["mu_mean"] for p in policies] == [r["Mean"] for r in rows]
+
+
+def test_tensorboard_curve_actor_and_checkpoints(reference):
+    run_dir, _ = reference
+    tags = tensorboard_tags(run_dir / rundir.TENSORBOARD)
+    assert {"eval/mu_mean", "eval/td3_mean", "td3/critic_loss", "td3/actor_loss", "td3/beta",
+            "pop/return_mean", "perf/steps_per_s"} <= tags
+    image = iio.imread(run_dir / rundir.CURVE)
+    assert image.ndim == 3 and image.shape[0] > 100 and image.std() > 0
+    _, metrics = read_csv(run_dir / rundir.METRICS)
+    last = int(metrics[-1]["generation"])
+    actors = rundir.load_actors(run_dir / rundir.ACTOR)
+    assert actors["generation"] == last and actors["env_steps"] == int(metrics[-1]["env_steps"])
+    n_params = (4 * 32 + 32) + (32 * 32 + 32) + (32 * 2 + 2)
+    assert actors["mu"].shape == actors["td3"].shape == actors["elite"].shape == (n_params,)
+    steps = checkpoint_steps(run_dir)
+    assert len(steps) == 3 and steps[-1] == last  # the last 3, the final one included
+
+
+def test_evaluate_reproduces_the_last_evaluation(reference, cache, tmp_path):
+    run_dir, _ = reference
+    out = tmp_path / "re.csv"
+    result = run("evaluate", [f"run={run_dir}", f"out={out}"], cache, tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "mu" in result.stdout and "td3" in result.stdout and "elite" in result.stdout
+    _, rows = read_csv(out)
+    _, training = read_csv(run_dir / rundir.EVAL)
+    strip = lambda r: {k: v for k, v in r.items() if k != ""}
+    assert strip(rows[0]) == strip(training[-1])
+
+
+def test_render_refuses_a_task_without_a_mujoco_model(reference, cache, tmp_path):
+    run_dir, _ = reference
+    result = run("render", [f"run={run_dir}", f"out={tmp_path / 'x.gif'}"], cache, tmp_path)
+    assert result.returncode == 2
+    assert "no MuJoCo model" in result.stderr and not (tmp_path / "x.gif").exists()
+
+
+@pytest.mark.parametrize("args, words", [
+    (["env=humanoid"], ["unknown env 'humanoid'", "halfcheetah", "hopper", "walker2d", "ant",
+                        "swimmer"]),
+    (["pgps.foo=1"], ["'pgps.foo'", "pop_size"]),
+    (["learning_rate=1"], ["'learning_rate'", "total_steps"]),
+    (["pgps.top_k=99"], ["top_k=99", "pop_size"]),
+    (["pgps.q_filter=maybe"], ["pgps.q_filter", "true or false"]),
+])
+def test_bad_settings_fail_before_anything_is_written(args, words, cache, tmp_path):
+    run_dir = tmp_path / "run"
+    result = run("train", tiny(f"run_dir={run_dir}", *args), cache, tmp_path)
+    assert result.returncode == 2, result.stderr[-2000:]
+    for word in words:
+        assert word in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not run_dir.exists()
+
+
+def test_unwritable_output_directory_fails_before_training(cache, tmp_path):
+    blocker = tmp_path / "not_a_directory"
+    blocker.write_text("x")
+    result = run("train", tiny(f"output_dir={blocker}"), cache, tmp_path)
+    assert result.returncode == 2
+    assert "cannot write the run directory" in result.stderr and str(blocker) in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def _snapshot(run_dir: pathlib.Path) -> dict:
+    return {str(p.relative_to(run_dir)): (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in run_dir.rglob("*") if p.is_file()}
+
+
+@pytest.mark.parametrize("args, words", [
+    ([], ["already holds a run", "resume=true"]),
+    (["resume=true", "pgps.q_filter=false"], ["different configuration",
+                                              "pgps.q_filter: checkpoint True, now False"]),
+    (["resume=true", "seed=5", "eval_every=100"], ["seed: checkpoint 1, now 5",
+                                                   "eval_every: checkpoint 400, now 100"]),
+])
+def test_an_existing_run_is_never_overwritten_or_resumed_with_other_settings(
+        reference, cache, tmp_path, args, words):
+    run_dir, _ = reference
+    before = _snapshot(run_dir)
+    result = run("train", tiny(f"run_dir={run_dir}", *args), cache, tmp_path)
+    assert result.returncode == 2, result.stderr[-2000:]
+    for word in words:
+        assert word in result.stderr
+    assert _snapshot(run_dir) == before
+
+
+def test_resume_by_directory_refuses_other_explicit_settings(reference, cache, tmp_path):
+    run_dir, _ = reference
+    before = _snapshot(run_dir)
+    result = run("train", [f"resume={run_dir}", "env=hopper"], cache, tmp_path)
+    assert result.returncode == 2
+    assert "env.name: checkpoint 'point', now 'hopper'" in result.stderr
+    assert _snapshot(run_dir) == before
+
+
+def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(
+        monkeypatch, tmp_path, capsys):
+    """The generation step is wrapped to report a NaN critic loss at generation 3."""
+    real = pgps.make_generation_step
+
+    def poisoned(config, env, donate=True):
+        step = real(config, env, donate)
+
+        def wrapped(state):
+            state, metrics = step(state)
+            if int(metrics["gen/generation"]) == 3:
+                metrics = {**metrics, "td3/critic_loss": jnp.float32(jnp.nan)}
+            return state, metrics
+        return wrapped
+
+    monkeypatch.setattr(pgps, "make_generation_step", poisoned)
+    run_dir = tmp_path / "nan"
+    overrides = tiny("checkpoint_every=1", f"run_dir={run_dir}")
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        values = OmegaConf.to_container(compose("config", overrides=overrides), resolve=True)
+    assert train.run(values, overrides) == train.EXIT_FAILED
+    err = capsys.readouterr().err
+    assert "generation 3" in err and "td3/critic_loss" in err
+    assert "last good checkpoint is generation 2" in err
+    assert checkpoint_steps(run_dir) == [1, 2] and leftovers(run_dir) == []
+    assert rundir.load_actors(run_dir / rundir.ACTOR)["generation"] == 2
+    _, metrics = read_csv(run_dir / rundir.METRICS)
+    assert metrics[-1]["generation"] == "3" and metrics[-1]["critic_loss"] == "nan"

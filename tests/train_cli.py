@@ -1,0 +1,107 @@
+"""Helpers of the training CLI tests: run `python -m pgps_jax.<module>`, read its outputs."""
+
+import csv
+import os
+import pathlib
+import struct
+import subprocess
+import sys
+import time
+
+REPO = pathlib.Path(__file__).resolve().parent.parent
+
+TINY = ("env=point", "seed=1", "total_steps=3000", "eval_every=400", "checkpoint_every=3",
+        "progress=false")
+"""A run of ~25 short generations of a tiny PGPS on the point mass."""
+
+
+
+def tiny(*overrides: str) -> list[str]:
+    """TINY with `overrides` replacing settings of the same key."""
+    merged = {a.split("=", 1)[0]: a for a in TINY}
+    merged.update({a.split("=", 1)[0]: a for a in overrides})
+    return list(merged.values())
+
+
+HOST_COLUMNS = ("steps_per_s", "wall_time_s")
+
+
+def cli_env(cache_dir: pathlib.Path) -> dict:
+    """The environment of a CLI subprocess: CPU, and a persistent compilation cache shared by
+    the test's subprocesses (the same program compiles to the same executable)."""
+    env = dict(os.environ)
+    env.update(JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(cache_dir),
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", PYTHONUNBUFFERED="1")
+    return env
+
+
+def run(module: str, args, cache_dir: pathlib.Path, cwd: pathlib.Path,
+        timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", f"pgps_jax.{module}", *args], cwd=cwd,
+                          env=cli_env(cache_dir), capture_output=True, text=True, timeout=timeout)
+
+
+def start(module: str, args, cache_dir: pathlib.Path, cwd: pathlib.Path,
+          log: pathlib.Path) -> subprocess.Popen:
+    """A CLI process in the background; stdout and stderr go to `log`."""
+    out = open(log, "w")
+    return subprocess.Popen([sys.executable, "-m", f"pgps_jax.{module}", *args], cwd=cwd,
+                            env=cli_env(cache_dir), stdout=out, stderr=subprocess.STDOUT)
+
+
+def read_csv(path: pathlib.Path) -> tuple[list[str], list[dict]]:
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        return list(reader.fieldnames), list(reader)
+
+
+def deterministic(rows: list[dict]) -> list[dict]:
+    """metrics.csv rows without the host-measured columns."""
+    return [{k: v for k, v in r.items() if k not in HOST_COLUMNS} for r in rows]
+
+
+def checkpoint_steps(run_dir: pathlib.Path) -> list[int]:
+    directory = run_dir / "checkpoints"
+    if not directory.exists():
+        return []
+    return sorted(int(p.name) for p in directory.iterdir() if p.name.isdigit())
+
+
+def leftovers(run_dir: pathlib.Path) -> list[str]:
+    """Temporary files or directories: what an interrupted write would leave behind."""
+    return [str(p) for p in run_dir.rglob("*") if "tmp" in p.name.lower()]
+
+
+def wait_until(predicate, process: subprocess.Popen, timeout: float = 300) -> None:
+    """Polls `predicate` until true; fails if the process ends or time runs out first."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if process.poll() is not None:
+            raise AssertionError(f"the process ended (status {process.returncode}) too early")
+        if time.monotonic() > deadline:
+            process.kill()
+            raise AssertionError("timed out waiting for the process")
+        time.sleep(0.02)
+
+
+def data_rows(path: pathlib.Path) -> int:
+    """Complete data lines written so far (0 if the file does not exist yet)."""
+    if not path.exists():
+        return 0
+    return max(0, path.read_bytes().count(b"\n") - 1)
+
+
+def tensorboard_tags(directory: pathlib.Path) -> set[str]:
+    """Scalar tags in the TensorBoard event files (TFRecord framing, Event protos)."""
+    from tensorboardX.proto import event_pb2
+    tags = set()
+    for path in directory.glob("events.out.tfevents.*"):
+        data = path.read_bytes()
+        offset = 0
+        while offset + 12 <= len(data):
+            (length,) = struct.unpack("<Q", data[offset:offset + 8])
+            record = data[offset + 12:offset + 12 + length]
+            offset += 12 + length + 4
+            event = event_pb2.Event.FromString(record)
+            tags.update(v.tag for v in event.summary.value)
+    return tags
