@@ -95,6 +95,8 @@ class PGPSConfig:
     """Steps added to T every T_interval total steps."""
 
     # --- evaluation (Section 5.1) ---
+    eval_every: int = 10_000
+    """Env steps between test evaluations, run inside generation_step in the rollout's batch."""
     eval_episodes: int = 10
     """Deterministic test episodes of the CEM mean μ."""
     eval_steps: int = 1000
@@ -165,7 +167,7 @@ def _validate(c: PGPSConfig) -> None:
     _require(1 <= c.top_k <= c.pop_size, "top_k", c.top_k, f"in [1, pop_size={c.pop_size}]")
     positive_ints = ("batch_size", "buffer_size", "update_blocks", "td3_to_cem_period",
                      "ss1_size", "ss2_size", "t_init", "t_max", "t_interval", "eval_episodes",
-                     "eval_steps")
+                     "eval_every", "eval_steps")
     for name in positive_ints:
         value = getattr(c, name)
         _require(isinstance(value, int) and value > 0, name, value, "a positive integer")

@@ -56,6 +56,12 @@ class TwinCritic(nn.Module):
         return heads(self.hidden)(obs, action)
 
 
+def first_q(critic: TwinCritic, params, obs: jax.Array, action: jax.Array) -> jax.Array:
+    """Q1 alone, computing only the first head of the twin (actor loss, Q-filtering)."""
+    head = jax.tree.map(lambda p: p[0], params["params"]["Vmap_QHead_0"])
+    return _QHead(tuple(critic.hidden)).apply({"params": head}, obs, action)
+
+
 def actor_flattener(actor: Actor, observation_size: int) -> tuple[int, Callable]:
     """(number of actor parameters, function mapping a flat vector to the parameter tree)."""
     shapes = jax.eval_shape(actor.init, jax.random.PRNGKey(0), jnp.zeros((observation_size,)))

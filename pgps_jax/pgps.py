@@ -26,7 +26,7 @@ from brax.envs.base import Env
 from pgps_jax import buffer as replay
 from pgps_jax import cem, qfilter
 from pgps_jax.config import PGPSConfig
-from pgps_jax.networks import actor_flattener, flatten
+from pgps_jax.networks import actor_flattener, first_q, flatten
 from pgps_jax.rollout import random_warmup, run_episodes
 from pgps_jax.td3 import TD3, TD3State
 
@@ -39,7 +39,9 @@ class TrainState:
     beta: jax.Array              # [] distance weight β of L^A (eq. 2-3), persists
     generation: jax.Array        # [] int32 generations completed
     total_steps: jax.Array       # [] int32 env steps so far, warm-up included
+    next_eval: jax.Array         # [] int32 total_steps at which the next evaluation is due
     key: jax.Array               # PRNG key
+    eval_key: jax.Array          # PRNG key of the fixed evaluation start states
 
 
 def episode_limit(total_steps: jax.Array, config: PGPSConfig) -> jax.Array:
@@ -66,8 +68,13 @@ def _parts(config: PGPSConfig, env: Env) -> tuple[TD3, Callable]:
     return td3, unflatten
 
 
-def init(config: PGPSConfig, env: Env, key: jax.Array) -> TrainState:
-    """Fresh TD3, μ = the TD3 actor's parameters, and a buffer filled by the random warm-up."""
+def init(config: PGPSConfig, env: Env, key: jax.Array,
+         eval_key: jax.Array | None = None) -> TrainState:
+    """Fresh TD3, μ = the TD3 actor's parameters, and a buffer filled by the random warm-up.
+
+    eval_key: start states of every evaluation (the paper uses seed + 100); by default derived
+    from `key`. The first generation evaluates the initial μ.
+    """
     td3, _ = _parts(config, env)
     td3_key, warmup_key, next_key = jax.random.split(key, 3)
     td3_state = td3.init(td3_key)
@@ -83,7 +90,9 @@ def init(config: PGPSConfig, env: Env, key: jax.Array) -> TrainState:
                       td3=td3_state, buffer=buffer,
                       beta=jnp.asarray(config.beta_init, jnp.float32),
                       generation=jnp.zeros((), jnp.int32),
-                      total_steps=jnp.asarray(total_steps, jnp.int32), key=next_key)
+                      total_steps=jnp.asarray(total_steps, jnp.int32),
+                      next_eval=jnp.zeros((), jnp.int32), key=next_key,
+                      eval_key=jax.random.fold_in(key, 100) if eval_key is None else eval_key)
 
 
 def _population(config: PGPSConfig, td3: TD3, unflatten: Callable, state: TrainState,
@@ -98,7 +107,7 @@ def _population(config: PGPSConfig, td3: TD3, unflatten: Callable, state: TrainS
     def filtered(population):
         candidates = cem.ask(candidate_key, state.cem, config.num_candidates)
         states = replay.sample_obs(state.buffer, states_key, config.ss1_size)
-        q1 = lambda critic, obs, action: td3.critic_net.apply(critic, obs, action)[0]
+        q1 = functools.partial(first_q, td3.critic_net)
         scores = qfilter.potentials(_policy(td3, unflatten), q1, candidates,
                                     state.td3.critic, states)
         return population.at[half:].set(
@@ -128,10 +137,24 @@ def generation_step(config: PGPSConfig, env: Env,
     if config.td3_probe:
         actors = jnp.concatenate([population, td3_flat[None]])
         limits = jnp.append(limits, jnp.where(td3_turn, limit, 0))
-    episodes = run_episodes(env, _policy(td3, unflatten), actors,
-                            jax.random.split(reset_key, actors.shape[0]), limits, config.t_max)
-    buffer = replay.add(state.buffer, episodes.transitions, episodes.valid)
-    interaction_steps = episodes.lengths.sum()
+    num_rollout = actors.shape[0]
+    eval_due = state.total_steps >= state.next_eval
+    eval_actors, eval_keys = _evaluation_batch(config, state, state.eval_key)
+    episodes = run_episodes(
+        env, _policy(td3, unflatten), jnp.concatenate([actors, eval_actors]),
+        jnp.concatenate([jax.random.split(reset_key, num_rollout), eval_keys]),
+        jnp.concatenate([limits, jnp.full((eval_actors.shape[0],),
+                                          jnp.where(eval_due, config.eval_steps, 0))]),
+        max(config.t_max, config.eval_steps))
+    buffer = replay.add(state.buffer,
+                        jax.tree.map(lambda x: x[:, :num_rollout], episodes.transitions),
+                        episodes.valid[:, :num_rollout])
+    interaction_steps = episodes.lengths[:num_rollout].sum()
+    evaluation = _evaluation_metrics(config, episodes.returns[num_rollout:])
+    evaluation = {k: jnp.where(eval_due, v, jnp.nan) for k, v in evaluation.items()}
+    next_eval = jnp.where(eval_due,
+                          (state.total_steps // config.eval_every + 1) * config.eval_every,
+                          state.next_eval)
 
     returns = episodes.returns[:n]
     new_cem = cem.tell(state.cem, population, returns, top_k=config.top_k,
@@ -149,7 +172,7 @@ def generation_step(config: PGPSConfig, env: Env,
                                       unflatten(new_cem.elite), guided, state.beta)
     new_state = TrainState(cem=new_cem, td3=new_td3, buffer=buffer, beta=beta,
                            generation=generation, total_steps=state.total_steps + interaction_steps,
-                           key=next_key)
+                           next_eval=next_eval, key=next_key, eval_key=state.eval_key)
     metrics = {
         "gen/generation": generation,
         "gen/total_steps": new_state.total_steps,
@@ -169,37 +192,54 @@ def generation_step(config: PGPSConfig, env: Env,
         "td3/beta": beta,
         **{f"pop/return_{i}": returns[i] for i in range(n)},
         **losses,
+        "eval/due": eval_due,
+        "eval/step": state.total_steps,
+        **evaluation,
     }
     return new_state, metrics
 
 
-def evaluate(config: PGPSConfig, env: Env, state: TrainState, key: jax.Array) -> dict:
-    """Deterministic test episodes (Section 5.1) of μ, the TD3 actor and the elite.
+_EVALUATED = ("mu", "td3", "elite")
 
-    Each plays `eval_episodes` episodes of `eval_steps` steps from the start states drawn
-    from `key` (pass the same key every time, e.g. PRNGKey(seed + 100)); all run in one batch.
-    Returns per-episode returns [E] and their mean/std per policy.
-    """
-    td3, unflatten = _parts(config, env)
-    e = config.eval_episodes
-    policies = {"mu": state.cem.mean, "td3": flatten(state.td3.actor), "elite": state.cem.elite}
-    actors = jnp.repeat(jnp.stack(list(policies.values())), e, axis=0)
-    reset_keys = jnp.tile(jax.random.split(key, e), (len(policies), 1))
-    episodes = run_episodes(env, _policy(td3, unflatten), actors, reset_keys,
-                            jnp.full((actors.shape[0],), config.eval_steps), config.eval_steps,
-                            record=False)
+
+def _evaluation_batch(config: PGPSConfig, state: TrainState,
+                      key: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Actors [3E, P] (μ, TD3 actor, elite; E episodes each) and their reset keys from `key`."""
+    policies = (state.cem.mean, flatten(state.td3.actor), state.cem.elite)
+    actors = jnp.repeat(jnp.stack(policies), config.eval_episodes, axis=0)
+    keys = jnp.tile(jax.random.split(key, config.eval_episodes), (len(policies), 1))
+    return actors, keys
+
+
+def _evaluation_metrics(config: PGPSConfig, returns: jax.Array) -> dict:
+    """Per-policy test returns [E] ("eval/mu_returns", ...) and their mean and std."""
     metrics = {}
-    for i, name in enumerate(policies):
-        returns = episodes.returns[i * e:(i + 1) * e]
-        metrics[f"eval/{name}_returns"] = returns
-        metrics[f"eval/{name}_mean"] = jnp.mean(returns)
-        metrics[f"eval/{name}_std"] = jnp.std(returns)
+    for name, policy_returns in zip(_EVALUATED, returns.reshape(len(_EVALUATED), -1)):
+        metrics[f"eval/{name}_returns"] = policy_returns
+        metrics[f"eval/{name}_mean"] = jnp.mean(policy_returns)
+        metrics[f"eval/{name}_std"] = jnp.std(policy_returns)
     return metrics
 
 
+def evaluate(config: PGPSConfig, env: Env, state: TrainState,
+             key: jax.Array | None = None) -> dict:
+    """Deterministic test episodes (Section 5.1) of μ, the TD3 actor and the elite, now.
+
+    Each plays `eval_episodes` episodes of `eval_steps` steps, all in one batch, from the
+    start states of `key` — by default `state.eval_key`, giving the same episodes that
+    generation_step runs when an evaluation is due. Use it for a final or standalone test.
+    """
+    td3, unflatten = _parts(config, env)
+    actors, keys = _evaluation_batch(config, state, state.eval_key if key is None else key)
+    episodes = run_episodes(env, _policy(td3, unflatten), actors, keys,
+                            jnp.full((actors.shape[0],), config.eval_steps), config.eval_steps,
+                            record=False)
+    return _evaluation_metrics(config, episodes.returns)
+
+
 @functools.lru_cache(maxsize=None)
-def make_init(config: PGPSConfig, env: Env) -> Callable[[jax.Array], TrainState]:
-    """Jitted `init` bound to `config` and `env`: key -> TrainState (cached per pair)."""
+def make_init(config: PGPSConfig, env: Env) -> Callable[..., TrainState]:
+    """Jitted `init` bound to `config` and `env`: (key, eval_key=None) -> TrainState (cached)."""
     return jax.jit(functools.partial(init, config, env))
 
 
@@ -213,6 +253,6 @@ def make_generation_step(config: PGPSConfig, env: Env,
 
 
 @functools.lru_cache(maxsize=None)
-def make_evaluate(config: PGPSConfig, env: Env) -> Callable[[TrainState, jax.Array], dict]:
-    """Jitted `evaluate` bound to `config` and `env`: (state, key) -> metrics."""
+def make_evaluate(config: PGPSConfig, env: Env) -> Callable[..., dict]:
+    """Jitted `evaluate` bound to `config` and `env`: (state, key=None) -> metrics (cached)."""
     return jax.jit(functools.partial(evaluate, config, env))

@@ -19,7 +19,7 @@ import optax
 
 from pgps_jax import buffer as replay
 from pgps_jax.config import PGPSConfig
-from pgps_jax.networks import Actor, TwinCritic
+from pgps_jax.networks import Actor, TwinCritic, first_q
 
 
 @chex.dataclass(frozen=True)
@@ -115,7 +115,7 @@ class TD3:
                    beta: jax.Array) -> jax.Array:
         """L^A of eq. 2 (β·D added to −Q1); with β = 0 it is L^O of eq. 1."""
         actions = self.actor_net.apply(actor_params, obs)
-        q1 = self.critic_net.apply(critic_params, obs, actions)[0]
+        q1 = first_q(self.critic_net, critic_params, obs, actions)
         return -jnp.mean(q1) + beta * action_distance(actions, elite_actions)
 
     def actor_update(self, state: TD3State, obs: jax.Array, elite_actions: jax.Array,

@@ -143,14 +143,39 @@ def test_training_raises_the_return_of_mu():
                            eval_steps=50, actor_hidden=(32, 32), critic_hidden=(32, 32))
     state = pgps.make_init(config, ENV)(jax.random.PRNGKey(0))
     evaluate = pgps.make_evaluate(config, ENV)
-    eval_key = jax.random.PRNGKey(100)
-    before = float(evaluate(state, eval_key)["eval/mu_mean"])
+    before = float(evaluate(state)["eval/mu_mean"])
     step = pgps.make_generation_step(config, ENV)
     for _ in range(25):
         state, _ = step(state)
-    after = evaluate(state, eval_key)
+    after = evaluate(state)
     # 50 steps at reward 1 − distance: starting near the origin (distance ≈ 1.1) scores ≈ −6;
     # reaching and holding the goal scores > 30.
     assert before < 5.0
     assert float(after["eval/mu_mean"]) > before + 25.0
     assert after["eval/mu_returns"].shape == (3,)
+
+
+def test_fused_evaluation_equals_standalone_evaluate():
+    config = SMALL.replace(eval_every=60)
+    state = pgps.make_init(config, ENV)(jax.random.PRNGKey(5), jax.random.PRNGKey(5 + 100))
+    step = pgps.make_generation_step(config, ENV, donate=False)
+    evaluate = pgps.make_evaluate(config, ENV)
+    due_steps = []
+    for _ in range(4):
+        expected = evaluate(state)
+        entering_steps = int(state.total_steps)
+        state, metrics = step(state)
+        if bool(metrics["eval/due"]):
+            due_steps.append(int(metrics["eval/step"]))
+            assert int(metrics["eval/step"]) == entering_steps
+            for name in ("mu", "td3", "elite"):
+                np.testing.assert_allclose(metrics[f"eval/{name}_returns"],
+                                           expected[f"eval/{name}_returns"], rtol=1e-5)
+        else:
+            assert np.isnan(float(metrics["eval/mu_mean"]))
+        # test episodes are neither stored nor counted
+        assert int(state.buffer.size) == int(state.total_steps)
+    # due at the first generation, then once each time the total crosses a multiple of 60
+    assert due_steps[0] == 100
+    assert [s // 60 for s in due_steps] == sorted(set(s // 60 for s in due_steps))
+    assert len(due_steps) >= 2

@@ -8,6 +8,7 @@ import pytest
 
 from pgps_jax import buffer as replay
 from pgps_jax.config import PGPSConfig
+from pgps_jax.networks import first_q
 from pgps_jax.td3 import TD3, action_distance, adapt_beta
 
 OBS, ACT, BATCH = 3, 2, 16
@@ -161,3 +162,11 @@ def test_schedule_runs_blocks_of_num_update(setup, guided):
     # elite = the actor itself: D = 0 < D_target/1.5 halves β in each block only when guided
     assert float(beta) == pytest.approx(1.0 / 2 ** 5 if guided else 1.0)
     assert np.isfinite(losses["td3/critic_loss"]) and np.isfinite(losses["td3/actor_loss"])
+
+
+def test_first_q_is_head_zero_of_the_twin(setup):
+    td3, state, batch = setup
+    both = td3.critic_net.apply(state.critic, batch.obs, batch.action)
+    np.testing.assert_allclose(first_q(td3.critic_net, state.critic, batch.obs, batch.action),
+                               both[0], rtol=1e-6)
+    assert not np.allclose(both[0], both[1])
