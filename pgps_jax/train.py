@@ -134,7 +134,7 @@ def run(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> int:
         _error(str(e))
         return EXIT_USAGE
     except KeyboardInterrupt:
-        _error("aborted by a second Ctrl-C; the checkpoints written before are intact")
+        _error("aborted (Ctrl-C) without writing a checkpoint; any written before are intact")
         return EXIT_INTERRUPTED
 
 

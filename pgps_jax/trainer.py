@@ -186,9 +186,9 @@ class Trainer:
         if bool(m["eval/due"]):
             self._record_evaluation(int(m["eval/step"]), m)
         budget = self.run.total_steps
-        self.bar.update(min(self.total, budget) - min(previous, budget))
         self.bar.set_postfix_str(f"gen {self.generation}, T {int(m['gen/episode_limit'])}, "
                                  + self._last_eval_text(), refresh=False)
+        self.bar.update(min(self.total, budget) - min(previous, budget))
         done = self.total >= budget
         if done:
             self.final_evaluation(state)
