@@ -55,6 +55,8 @@ class PGPSConfig:
     """Global gradient-norm clip (authors' code)."""
     update_blocks: int = 5
     """Blocks per generation: each is num_update critic then num_update actor updates."""
+    update_unroll: int = 4
+    """Updates per trip of the update loops (speed only; results are the same)."""
 
     # --- replay buffer and warm-up ---
     buffer_size: int = 1_000_000
@@ -165,7 +167,8 @@ def _validate(c: PGPSConfig) -> None:
     """Raise ValueError naming the field, its value and the valid range."""
     _require(c.pop_size >= 2, "pop_size", c.pop_size, "an integer >= 2")
     _require(1 <= c.top_k <= c.pop_size, "top_k", c.top_k, f"in [1, pop_size={c.pop_size}]")
-    positive_ints = ("batch_size", "buffer_size", "update_blocks", "td3_to_cem_period",
+    positive_ints = ("batch_size", "buffer_size", "update_blocks", "update_unroll",
+                     "td3_to_cem_period",
                      "ss1_size", "ss2_size", "t_init", "t_max", "t_interval", "eval_episodes",
                      "eval_every", "eval_steps")
     for name in positive_ints:

@@ -40,6 +40,21 @@ def adapt_beta(beta: jax.Array, distance: jax.Array, d_target: float, beta_min: 
     return jnp.clip(beta, beta_min, beta_max)
 
 
+def repeat(num: jax.Array, body, carry, unroll: int):
+    """`lax.fori_loop(0, num, body, carry)` for a traced `num`, unrolled `unroll` times.
+
+    Same iterations, same indices, same result; fewer loop trips (each costs a device-side
+    condition check between two tiny updates).
+    """
+    def chunk(j, carry):
+        for i in range(unroll):
+            carry = body(j * unroll + i, carry)
+        return carry
+
+    carry = jax.lax.fori_loop(0, num // unroll, chunk, carry)
+    return jax.lax.fori_loop(num // unroll * unroll, num, body, carry)
+
+
 def action_distance(actions: jax.Array, elite_actions: jax.Array) -> jax.Array:
     """D(π, π_elite): mean over states and action dims of (π(s) − π_elite(s))²."""
     return jnp.mean(jnp.square(actions - elite_actions))
@@ -161,11 +176,12 @@ class TD3:
                                        self.actor_net.apply(elite_actor, ss2))
             beta = jnp.where(guided, adapt_beta(beta, distance, c.d_target, c.beta_min,
                                                 c.beta_max), beta)
-            state, critic_total, _ = jax.lax.fori_loop(0, num_update, critic_step,
-                                                       (state, critic_total, critic_key))
+            state, critic_total, _ = repeat(num_update, critic_step,
+                                            (state, critic_total, critic_key), c.update_unroll)
             weight = jnp.where(guided, beta, 0.0)
-            state, actor_total, _, _ = jax.lax.fori_loop(
-                0, num_update, actor_step, (state, actor_total, actor_key, weight))
+            state, actor_total, _, _ = repeat(num_update, actor_step,
+                                              (state, actor_total, actor_key, weight),
+                                              c.update_unroll)
             return state, beta, critic_total, actor_total
 
         zero = jnp.zeros((), jnp.float32)

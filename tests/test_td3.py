@@ -9,7 +9,7 @@ import pytest
 from pgps_jax import buffer as replay
 from pgps_jax.config import PGPSConfig
 from pgps_jax.networks import first_q
-from pgps_jax.td3 import TD3, action_distance, adapt_beta
+from pgps_jax.td3 import TD3, action_distance, adapt_beta, repeat
 
 OBS, ACT, BATCH = 3, 2, 16
 CONFIG = PGPSConfig(actor_hidden=(8, 8), critic_hidden=(8, 8), batch_size=BATCH, ss2_size=8)
@@ -170,3 +170,12 @@ def test_first_q_is_head_zero_of_the_twin(setup):
     np.testing.assert_allclose(first_q(td3.critic_net, state.critic, batch.obs, batch.action),
                                both[0], rtol=1e-6)
     assert not np.allclose(both[0], both[1])
+
+
+def test_unrolled_repeat_equals_plain_loop():
+    def body(i, carry):
+        return carry * 1.01 + i
+    for num in (0, 3, 8, 11):
+        plain = jax.lax.fori_loop(0, num, body, jnp.asarray(1.0))
+        np.testing.assert_allclose(repeat(jnp.asarray(num), body, jnp.asarray(1.0), 4), plain,
+                                   rtol=1e-6)
