@@ -16,20 +16,19 @@ out (write μ's result as a CSV in the reference format: ,Step,Mean,Std,Reward1.
 import functools
 import pathlib
 import sys
-from typing import Any, Callable, Mapping, Optional, Sequence
+from typing import Callable, Mapping, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pgps_jax import pgps
 from pgps_jax import run_dir as rundir
 from pgps_jax.config import PGPSConfig
-from pgps_jax.networks import actor_flattener
 from pgps_jax.rollout import run_episodes
 from pgps_jax.run_config import RunSettings, UsageError, from_dict
-from pgps_jax.td3 import TD3
 
-POLICIES = ("mu", "td3", "elite")
+POLICIES = pgps.EVALUATED
 """The actors saved in actor_mu.npz, in the order `pgps.evaluate` batches them."""
 
 
@@ -62,21 +61,13 @@ def load_run(path: str) -> tuple[RunSettings, PGPSConfig, dict]:
     return settings, config, rundir.load_actors(directory / rundir.ACTOR)
 
 
-def actor_policy(config: PGPSConfig, env) -> Callable:
-    """(flat actor vector, obs) -> deterministic action."""
-    td3 = TD3(config, env.observation_size, env.action_size)
-    _, unflatten = actor_flattener(td3.actor_net, env.observation_size)
-    return lambda flat, obs: td3.actor_net.apply(unflatten(flat), obs)
-
-
 @functools.partial(jax.jit, static_argnums=(0, 1, 4, 5))
 def _returns(config: PGPSConfig, env, actors: jax.Array, key: jax.Array, episodes: int,
              steps: int) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Returns [A, episodes], their means [A] and stds [A], computed as `pgps.evaluate` does
     (one batch, the same start states for every actor)."""
-    batch = jnp.repeat(actors, episodes, axis=0)
-    reset_keys = jnp.tile(jax.random.split(key, episodes), (actors.shape[0], 1))
-    result = run_episodes(env, actor_policy(config, env), batch, reset_keys,
+    batch, reset_keys = pgps.evaluation_batch(actors, key, episodes)
+    result = run_episodes(env, pgps.actor_policy(config, env), batch, reset_keys,
                           jnp.full((batch.shape[0],), steps), steps, record=False)
     per_actor = [result.returns[i * episodes:(i + 1) * episodes] for i in range(actors.shape[0])]
     return (jnp.stack(per_actor), jnp.stack([jnp.mean(r) for r in per_actor]),

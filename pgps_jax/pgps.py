@@ -62,6 +62,11 @@ def _policy(td3: TD3, unflatten: Callable) -> Callable:
     return lambda flat, obs: td3.actor_net.apply(unflatten(flat), obs)
 
 
+def actor_policy(config: PGPSConfig, env: Env) -> Callable:
+    """The deterministic policy of a flat actor vector: (flat, obs) -> action."""
+    return _policy(*_parts(config, env))
+
+
 def _parts(config: PGPSConfig, env: Env) -> tuple[TD3, Callable]:
     td3 = TD3(config, env.observation_size, env.action_size)
     _, unflatten = actor_flattener(td3.actor_net, env.observation_size)
@@ -139,7 +144,8 @@ def generation_step(config: PGPSConfig, env: Env,
         limits = jnp.append(limits, jnp.where(td3_turn, limit, 0))
     num_rollout = actors.shape[0]
     eval_due = state.total_steps >= state.next_eval
-    eval_actors, eval_keys = _evaluation_batch(config, state, state.eval_key)
+    eval_actors, eval_keys = evaluation_batch(_evaluated_actors(state), state.eval_key,
+                                              config.eval_episodes)
     episodes = run_episodes(
         env, _policy(td3, unflatten), jnp.concatenate([actors, eval_actors]),
         jnp.concatenate([jax.random.split(reset_key, num_rollout), eval_keys]),
@@ -150,7 +156,7 @@ def generation_step(config: PGPSConfig, env: Env,
                         jax.tree.map(lambda x: x[:, :num_rollout], episodes.transitions),
                         episodes.valid[:, :num_rollout])
     interaction_steps = episodes.lengths[:num_rollout].sum()
-    evaluation = _evaluation_metrics(config, episodes.returns[num_rollout:])
+    evaluation = evaluation_metrics(episodes.returns[num_rollout:])
     evaluation = {k: jnp.where(eval_due, v, jnp.nan) for k, v in evaluation.items()}
     next_eval = jnp.where(eval_due,
                           (state.total_steps // config.eval_every + 1) * config.eval_every,
@@ -199,22 +205,25 @@ def generation_step(config: PGPSConfig, env: Env,
     return new_state, metrics
 
 
-_EVALUATED = ("mu", "td3", "elite")
+EVALUATED = ("mu", "td3", "elite")
+"""The actors each evaluation tests, in batch order: the CEM mean μ, the TD3 actor, the elite."""
 
 
-def _evaluation_batch(config: PGPSConfig, state: TrainState,
-                      key: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Actors [3E, P] (μ, TD3 actor, elite; E episodes each) and their reset keys from `key`."""
-    policies = (state.cem.mean, flatten(state.td3.actor), state.cem.elite)
-    actors = jnp.repeat(jnp.stack(policies), config.eval_episodes, axis=0)
-    keys = jnp.tile(jax.random.split(key, config.eval_episodes), (len(policies), 1))
-    return actors, keys
+def evaluation_batch(actors: jax.Array, key: jax.Array,
+                     episodes: int) -> tuple[jax.Array, jax.Array]:
+    """Actors [A, P] repeated to [A·E, P], and reset keys giving every actor the same E starts."""
+    return (jnp.repeat(actors, episodes, axis=0),
+            jnp.tile(jax.random.split(key, episodes), (actors.shape[0], 1)))
 
 
-def _evaluation_metrics(config: PGPSConfig, returns: jax.Array) -> dict:
+def _evaluated_actors(state: TrainState) -> jax.Array:
+    return jnp.stack([state.cem.mean, flatten(state.td3.actor), state.cem.elite])
+
+
+def evaluation_metrics(returns: jax.Array) -> dict:
     """Per-policy test returns [E] ("eval/mu_returns", ...) and their mean and std."""
     metrics = {}
-    for name, policy_returns in zip(_EVALUATED, returns.reshape(len(_EVALUATED), -1)):
+    for name, policy_returns in zip(EVALUATED, returns.reshape(len(EVALUATED), -1)):
         metrics[f"eval/{name}_returns"] = policy_returns
         metrics[f"eval/{name}_mean"] = jnp.mean(policy_returns)
         metrics[f"eval/{name}_std"] = jnp.std(policy_returns)
@@ -230,11 +239,12 @@ def evaluate(config: PGPSConfig, env: Env, state: TrainState,
     generation_step runs when an evaluation is due. Use it for a final or standalone test.
     """
     td3, unflatten = _parts(config, env)
-    actors, keys = _evaluation_batch(config, state, state.eval_key if key is None else key)
+    actors, keys = evaluation_batch(_evaluated_actors(state),
+                                    state.eval_key if key is None else key, config.eval_episodes)
     episodes = run_episodes(env, _policy(td3, unflatten), actors, keys,
                             jnp.full((actors.shape[0],), config.eval_steps), config.eval_steps,
                             record=False)
-    return _evaluation_metrics(config, episodes.returns)
+    return evaluation_metrics(episodes.returns)
 
 
 @functools.lru_cache(maxsize=None)

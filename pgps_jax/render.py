@@ -53,7 +53,7 @@ def _import_mujoco():
 @functools.partial(jax.jit, static_argnums=(0, 1, 4))
 def _episode(config, env, flat_actor, key, steps: int):
     """qpos [steps + 1, nq], rewards [steps], dones [steps] of one deterministic episode."""
-    from pgps_jax.evaluate import actor_policy
+    from pgps_jax.pgps import actor_policy
     policy = actor_policy(config, env)
     first = env.reset(key)
 

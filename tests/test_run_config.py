@@ -1,12 +1,11 @@
 """run_config: Hydra YAML -> (RunSettings, PGPSConfig), override checks, config differences."""
 
-import dataclasses
 
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from pgps_jax.config import PGPSConfig, for_task
+from pgps_jax.config import for_task
 from pgps_jax.run_config import (CONFIG_DIR, IDENTITY_KEYS, PGPS_FIELDS, UsageError,
                                  check_overrides, differences, env_choices, explicitly_set,
                                  from_dict, override_keys, pgps_config,
