@@ -169,7 +169,8 @@ def components(task: str) -> dict:
     _, tell_s = timed(tell, state.cem, population, returns)
     num_update = n * t_max // config.update_blocks
     train = jax.jit(lambda s: td3.train(s.td3, s.buffer, key, jnp.asarray(num_update),
-                                        unflatten(s.cem.elite), jnp.asarray(False), s.beta))
+                                        num_update, unflatten(s.cem.elite),
+                                        jnp.asarray(False), s.beta))
     _, train_s = timed(train, state, repeats=2)
     step = pgps.make_generation_step(config, env, donate=False)
     no_eval = state.replace(next_eval=jnp.asarray(2**30, jnp.int32))
@@ -177,7 +178,8 @@ def components(task: str) -> dict:
     _, generation_eval_s = timed(step, state, repeats=2)
 
     critic_fn = jax.jit(lambda s: jax.lax.scan(
-        lambda t, k: (td3.critic_update(t, replay.sample(s.buffer, k, 256), k)[0], None),
+        lambda t, k: (td3.critic_update(t, replay.sample(s.buffer, k, 256),
+                                        td3.smoothing_noise(k, (256, env.action_size)))[0], None),
         s.td3, jax.random.split(key, UPDATE_STEPS))[0])
     no_elite = jnp.zeros((256, env.action_size))
     actor_fn = jax.jit(lambda s: jax.lax.scan(

@@ -54,13 +54,21 @@ def add(state: BufferState, batch: Transition, mask: jax.Array) -> BufferState:
                        size=jnp.minimum(state.size + count, capacity))
 
 
+def random_rows(state: BufferState, key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """Row indices of `shape`, uniform (with replacement) over the filled part."""
+    return jax.random.randint(key, shape, 0, jnp.maximum(state.size, 1))
+
+
+def gather(state: BufferState, rows: jax.Array) -> Transition:
+    """The transitions stored at `rows`."""
+    return jax.tree.map(lambda buf: buf[rows], state.data)
+
+
 def sample(state: BufferState, key: jax.Array, batch_size: int) -> Transition:
     """`batch_size` rows drawn uniformly (with replacement) from the filled part."""
-    rows = jax.random.randint(key, (batch_size,), 0, jnp.maximum(state.size, 1))
-    return jax.tree.map(lambda buf: buf[rows], state.data)
+    return gather(state, random_rows(state, key, (batch_size,)))
 
 
 def sample_obs(state: BufferState, key: jax.Array, num: int) -> jax.Array:
     """`num` states s drawn uniformly from the filled part (SS_1, SS_2 of the paper)."""
-    rows = jax.random.randint(key, (num,), 0, jnp.maximum(state.size, 1))
-    return state.data.obs[rows]
+    return state.data.obs[random_rows(state, key, (num,))]

@@ -174,7 +174,8 @@ def generation_step(config: PGPSConfig, env: Env,
         guided = jnp.zeros((), bool)
 
     num_update = interaction_steps // config.update_blocks
-    new_td3, beta, losses = td3.train(state.td3, buffer, train_key, num_update,
+    max_update = num_rollout * config.t_max // config.update_blocks
+    new_td3, beta, losses = td3.train(state.td3, buffer, train_key, num_update, max_update,
                                       unflatten(new_cem.elite), guided, state.beta)
     new_state = TrainState(cem=new_cem, td3=new_td3, buffer=buffer, beta=beta,
                            generation=generation, total_steps=state.total_steps + interaction_steps,

@@ -100,21 +100,26 @@ class TD3:
                         actor_opt=self.actor_optimizer.init(actor),
                         critic_opt=self.critic_optimizer.init(critic))
 
-    def critic_targets(self, state: TD3State, batch: replay.Transition,
-                       key: jax.Array) -> jax.Array:
-        """y = r + γ·discount·min(Q1', Q2')(s', smoothed π'(s')): [B]."""
+    def smoothing_noise(self, key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+        """Target policy smoothing noise clip(ε, −c, c), ε ~ N(0, σ²), of `shape`."""
         c = self.config
-        noise = jnp.clip(c.policy_noise * jax.random.normal(key, batch.action.shape),
-                         -c.noise_clip, c.noise_clip)
+        return jnp.clip(c.policy_noise * jax.random.normal(key, shape), -c.noise_clip,
+                        c.noise_clip)
+
+    def critic_targets(self, state: TD3State, batch: replay.Transition,
+                       noise: jax.Array) -> jax.Array:
+        """y = r + γ·discount·min(Q1', Q2')(s', clip(π'(s') + noise, −1, 1)): [B]."""
+        c = self.config
         next_action = jnp.clip(self.actor_net.apply(state.actor_target, batch.next_obs) + noise,
                                -1.0, 1.0)
         next_q = self.critic_net.apply(state.critic_target, batch.next_obs, next_action)
         return batch.reward + c.gamma * batch.discount * jnp.min(next_q, axis=0)
 
     def critic_update(self, state: TD3State, batch: replay.Transition,
-                      key: jax.Array) -> tuple[TD3State, jax.Array]:
-        """One clipped double-Q step on `batch`, then Q' ← τ·Q + (1 − τ)·Q'."""
-        target = jax.lax.stop_gradient(self.critic_targets(state, batch, key))
+                      noise: jax.Array) -> tuple[TD3State, jax.Array]:
+        """One clipped double-Q step on `batch` with smoothing `noise` [B, action_size], then
+        Q' ← τ·Q + (1 − τ)·Q'."""
+        target = jax.lax.stop_gradient(self.critic_targets(state, batch, noise))
 
         def loss_fn(params):
             q = self.critic_net.apply(params, batch.obs, batch.action)
@@ -144,44 +149,50 @@ class TD3:
         return state.replace(actor=actor, actor_target=actor_target, actor_opt=opt), loss
 
     def train(self, state: TD3State, buffer: replay.BufferState, key: jax.Array,
-              num_update: jax.Array, elite_actor, guided: jax.Array,
+              num_update: jax.Array, max_update: int, elite_actor, guided: jax.Array,
               beta: jax.Array) -> tuple[TD3State, jax.Array, dict]:
         """Appendix B schedule: `update_blocks` × [num_update critic, num_update actor updates].
 
         When `guided` (the TD3 actor fell behind), each block first draws SS_2 and adapts β
         (eq. 3), then trains the actor on L^A toward `elite_actor`; otherwise on L^O.
-        Returns the new state, the new β and mean losses.
+        `max_update` (static) bounds num_update: each block draws the rows and the smoothing
+        noise of up to that many updates in one go, keeping random-number generation out of
+        the update loop. Returns the new state, the new β and mean losses.
         """
         c = self.config
+        batches = (max_update, c.batch_size)
 
         def critic_step(i, carry):
-            state, total, block_key = carry
-            batch_key, noise_key = jax.random.split(jax.random.fold_in(block_key, i))
-            state, loss = self.critic_update(state, replay.sample(buffer, batch_key, c.batch_size),
-                                             noise_key)
-            return state, total + loss, block_key
+            state, total, rows, noise = carry
+            state, loss = self.critic_update(state, replay.gather(buffer, rows[i]), noise[i])
+            return state, total + loss, rows, noise
 
         def actor_step(i, carry):
-            state, total, block_key, weight = carry
-            obs = replay.sample(buffer, jax.random.fold_in(block_key, i), c.batch_size).obs
+            state, total, rows, weight = carry
+            obs = buffer.data.obs[rows[i]]
             elite_actions = self.actor_net.apply(elite_actor, obs)
             state, loss = self.actor_update(state, obs, elite_actions, weight)
-            return state, total + loss, block_key, weight
+            return state, total + loss, rows, weight
 
         def block(b, carry):
             state, beta, critic_total, actor_total = carry
-            ss2_key, critic_key, actor_key = jax.random.split(jax.random.fold_in(key, b), 3)
+            ss2_key, critic_key, noise_key, actor_key = jax.random.split(
+                jax.random.fold_in(key, b), 4)
             ss2 = replay.sample_obs(buffer, ss2_key, c.ss2_size)
             distance = action_distance(self.actor_net.apply(state.actor, ss2),
                                        self.actor_net.apply(elite_actor, ss2))
             beta = jnp.where(guided, adapt_beta(beta, distance, c.d_target, c.beta_min,
                                                 c.beta_max), beta)
-            state, critic_total, _ = repeat(num_update, critic_step,
-                                            (state, critic_total, critic_key), c.update_unroll)
+            noise = self.smoothing_noise(noise_key, batches + (self.action_size,))
+            state, critic_total, _, _ = repeat(
+                num_update, critic_step,
+                (state, critic_total, replay.random_rows(buffer, critic_key, batches), noise),
+                c.update_unroll)
             weight = jnp.where(guided, beta, 0.0)
-            state, actor_total, _, _ = repeat(num_update, actor_step,
-                                              (state, actor_total, actor_key, weight),
-                                              c.update_unroll)
+            state, actor_total, _, _ = repeat(
+                num_update, actor_step,
+                (state, actor_total, replay.random_rows(buffer, actor_key, batches), weight),
+                c.update_unroll)
             return state, beta, critic_total, actor_total
 
         zero = jnp.zeros((), jnp.float32)

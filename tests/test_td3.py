@@ -58,33 +58,42 @@ def setup():
 
 def test_critic_target_matches_hand_computation(setup):
     td3, state, batch = setup
-    key = jax.random.PRNGKey(7)
-    noise = np.clip(0.2 * np.asarray(jax.random.normal(key, (BATCH, ACT))), -0.5, 0.5)
+    noise = np.asarray(td3.smoothing_noise(jax.random.PRNGKey(7), (BATCH, ACT)))
     next_action = np.clip(np_actor(state.actor_target, np.asarray(batch.next_obs)) + noise, -1, 1)
     q_next = np_twin_q(state.critic_target, np.asarray(batch.next_obs), next_action)
     expected = np.asarray(batch.reward) + 0.99 * np.asarray(batch.discount) * q_next.min(0)
-    np.testing.assert_allclose(td3.critic_targets(state, batch, key), expected, rtol=1e-5,
-                               atol=1e-5)
+    np.testing.assert_allclose(td3.critic_targets(state, batch, jnp.asarray(noise)), expected,
+                               rtol=1e-5, atol=1e-5)
+
+
+def test_smoothing_noise_is_clipped_gaussian(setup):
+    td3, _, _ = setup
+    noise = np.asarray(td3.smoothing_noise(jax.random.PRNGKey(0), (20_000,)))
+    assert np.abs(noise).max() == pytest.approx(0.5)
+    assert np.mean(np.abs(noise) == 0.5) == pytest.approx(0.0124, abs=0.004)  # P(|ε| ≥ 2.5σ)
+    assert np.std(noise[np.abs(noise) < 0.5]) == pytest.approx(0.19, abs=0.01)
 
 
 def test_terminal_transitions_do_not_bootstrap(setup):
     td3, state, batch = setup
     terminal = batch.replace(discount=jnp.zeros(BATCH))
-    np.testing.assert_allclose(td3.critic_targets(state, terminal, jax.random.PRNGKey(0)),
-                               batch.reward, rtol=1e-6)
+    noise = td3.smoothing_noise(jax.random.PRNGKey(0), (BATCH, ACT))
+    np.testing.assert_allclose(td3.critic_targets(state, terminal, noise), batch.reward,
+                               rtol=1e-6)
 
 
 def test_critic_loss_is_sum_of_twin_mse(setup):
     td3, state, batch = setup
-    new, loss = td3.critic_update(state, batch, jax.random.PRNGKey(3))
-    target = np.asarray(td3.critic_targets(state, batch, jax.random.PRNGKey(3)))
+    noise = td3.smoothing_noise(jax.random.PRNGKey(3), (BATCH, ACT))
+    new, loss = td3.critic_update(state, batch, noise)
+    target = np.asarray(td3.critic_targets(state, batch, noise))
     q = np_twin_q(state.critic, np.asarray(batch.obs), np.asarray(batch.action))
     np.testing.assert_allclose(loss, ((q - target) ** 2).mean(1).sum(), rtol=1e-5)
 
 
 def test_targets_move_by_exactly_tau(setup):
     td3, state, batch = setup
-    new, _ = td3.critic_update(state, batch, jax.random.PRNGKey(3))
+    new, _ = td3.critic_update(state, batch, jnp.zeros((BATCH, ACT)))
     expected = jax.tree.map(lambda online, old: 0.005 * online + 0.995 * old,
                             new.critic, state.critic_target)
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7),
@@ -155,7 +164,7 @@ def test_schedule_runs_blocks_of_num_update(setup, guided):
     buf = _filled_buffer()
     num_update = 3
     new, beta, losses = td3.train(state, buf, jax.random.PRNGKey(0), jnp.asarray(num_update),
-                                  state.actor, jnp.asarray(guided), jnp.asarray(1.0))
+                                  4, state.actor, jnp.asarray(guided), jnp.asarray(1.0))
     # 5 blocks × num_update critic and actor updates each
     assert _adam_steps(new.critic_opt) == 5 * num_update
     assert _adam_steps(new.actor_opt) == 5 * num_update
