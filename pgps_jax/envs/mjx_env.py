@@ -85,9 +85,10 @@ class MjxEnv(Env):
         new = state.replace(
             pipeline_state=data, obs=obs, reward=forward + healthy + ctrl,
             done=1.0 - self.is_healthy(data.qpos, data.qvel).astype(jnp.float32),
-            metrics=dict(x_position=x1, x_velocity=x_velocity, reward_forward=forward,
-                         reward_ctrl=ctrl, reward_healthy=healthy,
-                         unstable=jnp.zeros((), jnp.float32)))
+            metrics={**state.metrics,  # keep keys that Brax wrappers add
+                     **dict(x_position=x1, x_velocity=x_velocity, reward_forward=forward,
+                            reward_ctrl=ctrl, reward_healthy=healthy,
+                            unstable=jnp.zeros((), jnp.float32))})
         finite = nan_guard.all_finite(data.qpos, data.qvel, obs, new.reward)
         return nan_guard.guard(state, new, finite)
 
