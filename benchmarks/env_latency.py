@@ -6,8 +6,9 @@ same model and settings from the same warmed-up physics state: `n_frames` calls 
 `jax.vmap(mjx.step)` in a `lax.fori_loop` per env step, same random actions. At batch 60,
 Brax's own env (`brax.envs.get_environment(task, backend="mjx")`) as shipped and with our
 solver settings, started from our warmed-up positions and velocities (Brax's swimmer refuses
-the MJX backend). Every function is compiled before any is timed; a figure is the median of
-5 timed calls of 100 steps (Brax's env: 2 calls of 20 steps, it is slow).
+the MJX backend). Also at batch 60, our env with Newton 2 iterations (the more accurate,
+slower settings of BENCHMARKS.md). Every function is compiled before any is timed; a figure
+is the median of 5 timed calls of 100 steps (Brax's env: 2 calls of 20 steps, it is slow).
 
     python benchmarks/env_latency.py  # table on stdout, benchmarks/results/env_latency.json
 """
@@ -28,6 +29,7 @@ from pgps_jax.envs import TASKS, make_env
 
 BATCHES = (10, 60, 1024)
 BRAX_BATCH = 60
+ALTERNATIVE = {"iterations": 2}
 WARMUP, STEPS, REPEATS = 200, 100, 5
 BRAX_STEPS, BRAX_REPEATS = 20, 2
 BRAX_NAMES = {"halfcheetah": "halfcheetah", "hopper": "hopper", "walker2d": "walker2d",
@@ -101,6 +103,9 @@ def build(task: str, pool: concurrent.futures.Executor) -> dict:
         state = jax.eval_shape(jax.vmap(env.reset), jax.random.split(key, batch))
         jobs["env", batch] = (env_rollout(env, batch, STEPS), state, key)
         jobs["bare", batch] = (bare_rollout(env, batch, STEPS), state.pipeline_state, key)
+    alt = make_env(task, **ALTERNATIVE)
+    state = jax.eval_shape(jax.vmap(alt.reset), jax.random.split(key, BRAX_BATCH))
+    jobs["alternative"] = (env_rollout(alt, BRAX_BATCH, STEPS), state, key)
     if task in BRAX_NAMES:
         keys = jax.random.split(key, BRAX_BATCH)
         qpos, qvel = (jax.ShapeDtypeStruct((BRAX_BATCH, n), jnp.float32)
@@ -129,13 +134,16 @@ def measure(task: str, fns: dict) -> dict:
             "ratio": env_s / bare_s, "contacts_per_env": active_contacts(state.pipeline_state),
             "done_fraction": float(state.done.mean())}
         if batch == BRAX_BATCH:
-            warm = state.pipeline_state
+            warm = state
+    out[f"iterations_2_ms_batch_{BRAX_BATCH}"] = (
+        1e3 * timed(fns["alternative"], warm, key, REPEATS) / STEPS)
     for name in ("brax", "brax_same_settings"):
         if (name, "reset") not in fns:
             out[f"{name}_ms_batch_{BRAX_BATCH}"] = None
             continue
         state = fns[name, "reset"](jax.random.split(key, BRAX_BATCH))
-        state = state.replace(pipeline_state=fns[name, "init"](warm.qpos, warm.qvel))
+        qpos, qvel = warm.pipeline_state.qpos, warm.pipeline_state.qvel
+        state = state.replace(pipeline_state=fns[name, "init"](qpos, qvel))
         state = fns[name](state, key)  # first call, untimed
         out[f"{name}_ms_batch_{BRAX_BATCH}"] = (
             1e3 * timed(fns[name], state, key, BRAX_REPEATS) / BRAX_STEPS)
@@ -147,8 +155,9 @@ def table(results: dict) -> str:
     lines = ["| task | " + " | ".join(f"env ms @{b}" for b in BATCHES)
              + f" | floor ms @{BRAX_BATCH} | ratio @{BRAX_BATCH}"
              f" | ratio @{BATCHES[0]} / @{BATCHES[-1]}"
-             f" | Brax env ms @{BRAX_BATCH} (as shipped / our settings) |",
-             "|---" * 7 + "|"]
+             f" | Brax env ms @{BRAX_BATCH} (as shipped / our settings)"
+             f" | ours, 2 iterations, ms @{BRAX_BATCH} |",
+             "|---" * 8 + "|"]
     for task, r in results["tasks"].items():
         b = r[f"batch_{BRAX_BATCH}"]
         brax = " / ".join("—" if r[f"{n}_ms_batch_{BRAX_BATCH}"] is None
@@ -157,7 +166,8 @@ def table(results: dict) -> str:
         lines.append(
             f"| {task} | " + " | ".join(f"{r[f'batch_{x}']['env_ms']:.2f}" for x in BATCHES)
             + f" | {b['bare_ms']:.2f} | {b['ratio']:.2f} | {r[f'batch_{BATCHES[0]}']['ratio']:.2f}"
-            f" / {r[f'batch_{BATCHES[-1]}']['ratio']:.2f} | {brax} |")
+            f" / {r[f'batch_{BATCHES[-1]}']['ratio']:.2f} | {brax}"
+            f" | {r[f'iterations_2_ms_batch_{BRAX_BATCH}']:.2f} |")
     return "\n".join(lines)
 
 

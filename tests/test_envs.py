@@ -104,7 +104,7 @@ def test_random_steps_stay_finite(task, trajectory):
 
 
 def test_reward_is_gym_v4(task, trajectory):
-    """Forward term = Δ(torso x from MuJoCo's kinematics)/dt; reward = forward + healthy − ctrl."""
+    """Forward term = Δ(torso x by MuJoCo's kinematics)/dt; reward = forward + healthy − ctrl."""
     _, _, dt, ctrl_weight = GYM_V4[task.name]
     states, model = trajectory.states, task.env.mj_model
     data = mujoco.MjData(model)
@@ -200,7 +200,7 @@ def test_guard_keeps_previous_state():
     out = nan_guard.guard(prev, new, nan_guard.all_finite(new.pipeline_state))
     np.testing.assert_array_equal(out.pipeline_state["q"], 1.0)
     np.testing.assert_array_equal(out.obs, 1.0)
-    assert (out.reward, out.done, out.metrics["unstable"], out.metrics["x"]) == (0, 1, 1, 0)
+    assert (out.reward, out.done, out.metrics["unstable"], out.metrics["x"]) == (0, 1, 1, 1)
     kept = nan_guard.guard(prev, prev.replace(reward=jnp.array(2.0)), jnp.array(True))
     assert (kept.reward, kept.done, kept.metrics["unstable"]) == (2, 0, 0)
 

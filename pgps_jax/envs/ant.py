@@ -1,5 +1,7 @@
 """Ant: Gym `Ant-v4` (contact forces excluded, its default) on Brax's `ant.xml`, on MJX.
 
+Brax's model lets only the four feet touch the floor (Gym's: every geom).
+
 - Observation (27): qpos[2:] (torso z, torso quaternion, eight joint angles) then qvel (14),
   unclipped.
 - Action (8): hip and ankle torques in [-1, 1].
@@ -11,8 +13,9 @@
 - Reset: init_qpos + U(±0.1), qvel = 0.1·N(0, 1). init_qpos is the model's own (torso at
   0.55 m, legs bent inside their joint ranges); Gym starts from qpos0 (torso at 0.75 m, legs
   straight, ankles outside their ranges).
-- Physics: Newton, 1 iteration, 4 line-search iterations, Euler damping off (as Brax's ant
-  on MJX; evidence in BENCHMARKS.md).
+- Physics: Newton, 1 iteration, 4 line-search iterations, Euler damping off, as Brax's ant
+  on MJX. Mean return against the model's own settings: random actions +7 ± 9%, sinusoids
+  +15 ± 6% (BENCHMARKS.md).
 """
 
 import jax

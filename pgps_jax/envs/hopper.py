@@ -1,7 +1,7 @@
 """Hopper: Gym `Hopper-v4` on Brax's `hopper.xml`, stepped on MJX.
 
 Brax's model drops the `ref` of the rootz joint, so the torso height is z = 1.25 + qpos[1]
-(Gym's qpos[1] is the height itself).
+(Gym's qpos[1] is the height itself), and integrates with Euler where Gym's asks for RK4.
 
 - Observation (11): z, qpos[2:] (torso angle, thigh, leg, foot angles), then
   clip(qvel, −10, 10) (6).
@@ -11,8 +11,8 @@ Brax's model drops the `ref` of the rootz joint, so the torso height is z = 1.25
   (qpos[2:], qvel) lies in (−100, 100).
 - dt: 0.002 s timestep × frame_skip 4 = 0.008 s.
 - Reset: qpos0 + U(±5e-3), qvel = U(±5e-3).
-- Physics: Newton, 1 iteration, 4 line-search iterations, Euler damping off (evidence in
-  BENCHMARKS.md).
+- Physics: Newton, 1 iteration, 4 line-search iterations, Euler damping off. Mean return
+  against the model's own settings: random actions +3%, sinusoids +7% (BENCHMARKS.md).
 """
 
 import jax

@@ -1,9 +1,9 @@
 """Ends an episode whose physics went non-finite, so no NaN reaches the learner.
 
 A step whose physics state, observation or reward is not finite becomes terminal
-(`done=1`, `metrics["unstable"]=1`, reward 0) and keeps the previous, finite physics state
-and observation, so later (vmapped) steps of that env stay finite. The rollout never stores
-a transition flagged unstable.
+(`done=1`, `metrics["unstable"]=1`, reward 0) and keeps the previous, finite physics state,
+observation and metrics, so later (vmapped) steps of that env stay finite. The rollout never
+stores a transition flagged unstable.
 """
 
 from brax.envs.base import State
@@ -18,11 +18,11 @@ def all_finite(*trees) -> jax.Array:
 
 
 def guard(prev: State, new: State, finite: jax.Array) -> State:
-    """Returns `new`, or, where `finite` is False, `prev`'s physics and obs flagged terminal."""
+    """Returns `new`, or, where `finite` is False, `prev` flagged terminal with reward 0."""
     def keep(a, b):
         return jnp.where(finite, a, b)
 
-    metrics = {k: keep(v, jnp.zeros_like(v)) for k, v in new.metrics.items()}
+    metrics = {k: keep(v, prev.metrics.get(k, jnp.zeros_like(v))) for k, v in new.metrics.items()}
     metrics["unstable"] = keep(0.0, 1.0).astype(jnp.float32)
     return new.replace(
         pipeline_state=jax.tree.map(keep, new.pipeline_state, prev.pipeline_state),

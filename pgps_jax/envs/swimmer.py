@@ -9,8 +9,9 @@ viscous fluid forces (density 4000, viscosity 0.1).
 - Termination: none.
 - dt: 0.01 s timestep × frame_skip 4 = 0.04 s.
 - Reset: qpos0 + U(±0.1), qvel = U(±0.1).
-- Physics: Newton, 1 iteration, 4 line-search iterations, Euler damping off (the model has
-  no damped joints; evidence in BENCHMARKS.md).
+- Physics: Newton, 1 iteration, 4 line-search iterations (the model has no damped joint and
+  no contact). Mean return against the model's own settings: sinusoids +3%; random actions
+  return about 0 under both (BENCHMARKS.md).
 """
 
 import jax
