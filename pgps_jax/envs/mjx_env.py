@@ -2,7 +2,7 @@
 
 Shared by the five tasks: reset noise around the model's initial pose, `n_frames` physics
 steps per action, reward = forward_weight·Δx/dt + healthy_reward − ctrl_weight·Σa², and
-termination when a task's `healthy` test fails. There is no time limit and no auto-reset
+termination when a task's `is_healthy` test fails. There is no time limit and no auto-reset
 (the rollout truncates episodes). A non-finite step is terminal (`nan_guard`).
 """
 
@@ -93,10 +93,11 @@ class MjxEnv(Env):
         return nan_guard.guard(state, new, finite)
 
     def _x_position(self, qpos: jax.Array) -> jax.Array:
-        """Forward coordinate whose rate is rewarded: the root slide joint (Gym v4)."""
+        """Forward coordinate whose rate is rewarded: qpos[0], the root joint's x (Gym v4)."""
         return qpos[0]
 
     def _observation(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
+        """The task's Gym v4 observation of the physics state."""
         raise NotImplementedError
 
     def is_healthy(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
