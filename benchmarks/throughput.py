@@ -278,16 +278,19 @@ def main():
                             text=True).stdout.strip()
     result = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit,
               "components": [], "full_runs": []}
+    os.makedirs(os.path.dirname(args.out), exist_ok=True)
+
+    def record(kind, entry):
+        result[kind].append(entry)
+        print(json.dumps(entry), flush=True)
+        with open(args.out, "w") as f:      # after every entry: a cut-off run keeps its part
+            json.dump(result, f, indent=1)
+
     for task in args.tasks:
-        result["components"].append(components(task))
-        print(json.dumps(result["components"][-1], indent=1), flush=True)
+        record("components", components(task))
     for task in args.full_run:
         for seeds in args.seeds:
-            result["full_runs"].append(full_run(task, seeds))
-            print(json.dumps(result["full_runs"][-1]), flush=True)
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    with open(args.out, "w") as f:
-        json.dump(result, f, indent=1)
+            record("full_runs", full_run(task, seeds))
 
 
 if __name__ == "__main__":
