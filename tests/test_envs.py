@@ -224,3 +224,20 @@ def test_step_inside_while_loop():
     t, state, ended = until_done(jax.random.PRNGKey(0))
     assert 0 < int(t) < 500 and np.all(ended == 1.0)
     assert np.isfinite(state.obs).all()
+
+
+def test_brax_training_wrappers_run_our_task():
+    """Brax's own wrappers (vmap, episode limit, auto-reset) accept the task: the metrics
+    they add survive our step, and the episode limit truncates and restarts."""
+    from brax.envs.wrappers import training as brax_training
+    env = brax_training.wrap(make_env("swimmer"), episode_length=3)
+    state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(0), 2))
+    step = jax.jit(env.step)
+    steps, truncated = [], []
+    for _ in range(4):
+        state = step(state, jnp.zeros((2, env.action_size)))
+        steps.append(np.asarray(state.info["steps"]))
+        truncated.append(np.asarray(state.info["truncation"]))
+    np.testing.assert_array_equal(np.stack(steps)[:, 0], [1, 2, 3, 1])  # restarted after 3
+    np.testing.assert_array_equal(np.stack(truncated)[:, 0], [0, 0, 1, 0])
+    assert "unstable" in state.metrics and np.isfinite(state.obs).all()
