@@ -17,7 +17,7 @@ class Transition:
     action: jax.Array     # [..., action_size] a_t
     reward: jax.Array     # [...] r_t
     next_obs: jax.Array   # [..., obs_size] s_{t+1}
-    discount: jax.Array   # [...] 0 after a terminal (unhealthy) step, else 1 (truncation bootstraps)
+    discount: jax.Array   # [...] 0 after a terminal (unhealthy) step, else 1 (truncation)
 
 
 @chex.dataclass(frozen=True)

@@ -122,6 +122,15 @@ def _population(config: PGPSConfig, td3: TD3, unflatten: Callable, state: TrainS
                         lambda population: population, population)
 
 
+def _td3_return(config: PGPSConfig, returns: jax.Array) -> jax.Array:
+    """The TD3 actor's return: slot N−1 (PG→EA), the probe slot N, or NaN where it never plays."""
+    if config.pg_guides_ea:
+        return returns[config.pop_size - 1]
+    if config.td3_probe:
+        return returns[config.pop_size]
+    return jnp.asarray(jnp.nan)
+
+
 def generation_step(config: PGPSConfig, env: Env,
                     state: TrainState) -> tuple[TrainState, dict]:
     """One generation of Algorithm 1. Pure; bind config/env with `make_generation_step`."""
@@ -167,7 +176,7 @@ def generation_step(config: PGPSConfig, env: Env,
                        sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
                        divide_by_k=config.cem_divide_by_k)
     td3_in_episodes = config.pg_guides_ea or config.td3_probe
-    td3_return = episodes.returns[n - 1 if config.pg_guides_ea else n] if td3_in_episodes else jnp.nan
+    td3_return = _td3_return(config, episodes.returns)
     if config.ea_guides_pg:
         guided = td3_turn & fell_behind(td3_return, returns)
     else:
@@ -178,7 +187,8 @@ def generation_step(config: PGPSConfig, env: Env,
     new_td3, beta, losses = td3.train(state.td3, buffer, train_key, num_update, max_update,
                                       unflatten(new_cem.elite), guided, state.beta)
     new_state = TrainState(cem=new_cem, td3=new_td3, buffer=buffer, beta=beta,
-                           generation=generation, total_steps=state.total_steps + interaction_steps,
+                           generation=generation,
+                           total_steps=state.total_steps + interaction_steps,
                            next_eval=next_eval, key=next_key, eval_key=state.eval_key)
     metrics = {
         "gen/generation": generation,
@@ -188,8 +198,7 @@ def generation_step(config: PGPSConfig, env: Env,
         "gen/q_filter_active": (state.total_steps >= config.q_filter_start) & config.q_filter,
         "pop/return_mean": jnp.mean(returns),
         "pop/return_std": jnp.std(returns),
-        "pop/return_max": jnp.max(returns),
-        "pop/unstable_episodes": episodes.unstable.sum(),
+        "pop/unstable_episodes": episodes.unstable[:num_rollout].sum(),
         "cem/elite_return": jnp.max(returns),
         "cem/var_mean": jnp.mean(new_cem.var),
         "cem/damping": new_cem.damping,

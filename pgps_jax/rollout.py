@@ -65,7 +65,8 @@ def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: j
                        next_obs=jnp.zeros((rows, batch, env.observation_size)),
                        discount=jnp.zeros((rows, batch)))
     carry = dict(t=jnp.zeros((), jnp.int32), state=state, alive=step_limits > 0,
-                 returns=jnp.zeros((batch,)), discounted=jnp.zeros((batch,)), lengths=jnp.zeros((batch,), jnp.int32),
+                 returns=jnp.zeros((batch,)), discounted=jnp.zeros((batch,)),
+                 lengths=jnp.zeros((batch,), jnp.int32),
                  unstable=jnp.zeros((batch,), bool), transitions=empty,
                  valid=jnp.zeros((rows, batch), bool))
 
@@ -94,8 +95,8 @@ def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: j
         return out
 
     c = jax.lax.while_loop(cond, body, carry)
-    return Episodes(returns=c["returns"], discounted=c["discounted"], lengths=c["lengths"], unstable=c["unstable"],
-                    transitions=c["transitions"], valid=c["valid"])
+    return Episodes(returns=c["returns"], discounted=c["discounted"], lengths=c["lengths"],
+                    unstable=c["unstable"], transitions=c["transitions"], valid=c["valid"])
 
 
 def random_warmup(env: Env, key: jax.Array, num_envs: int, steps_per_env: int,
