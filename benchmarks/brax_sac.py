@@ -1,4 +1,4 @@
-"""Peer reference: Brax's own SAC for 1M env steps on the same task, GPU and session.
+"""Peer reference: Brax's own SAC for 1M env steps on the same task and GPU.
 
 Runs `brax.training.agents.sac` on this project's MJX task (same model and solver settings as
 PGPS trains on), with the settings recorded in DESIGN §4: 64 envs, one gradient update per env
