@@ -1,7 +1,7 @@
 """Peer reference: Brax's own SAC for 1M env steps on the same task and GPU.
 
 Runs `brax.training.agents.sac` on this project's MJX task (same model and solver settings as
-PGPS trains on), with the settings recorded in DESIGN §4: 64 envs, one gradient update per env
+PGPS trains on), with these settings: 64 envs, one gradient update per env
 step (64 per 64 env steps), batch 256, 1000-step episodes, deterministic evaluation. Reports
 the wall-clock including compilation and the evaluation returns.
 

@@ -1,6 +1,7 @@
 """Diagonal Cross-Entropy Method with rank weights, elitism and decaying additive noise.
 
-Pure `init / ask / tell` on an explicit CEMState (Section 3, Figure 2b; DESIGN §2):
+Pure `init / ask / tell` on an explicit CEMState (Section 3, Figure 2b; the update follows
+the authors' code, itself derived from CEM-RL):
     w_i ∝ log(1 + K) − log(i), i = 1..K (normalised)
     μ'   = Σ_i w_i θ_(i)
     Σ'   = Σ_i w_i (θ_(i) − μ)² [/ K] + damping

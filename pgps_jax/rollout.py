@@ -4,7 +4,7 @@
 until the task terminates it or it reaches its step limit, with no auto-reset. Its loop stops
 as soon as every episode has ended, so short episodes cost short loops.
 
-Termination and truncation (DESIGN §2): a terminal (unhealthy) step stores discount 0; an
+Termination and truncation: a terminal (unhealthy) step stores discount 0; an
 episode cut at its step limit stores discount 1 so the critic bootstraps through it. A step
 whose physics went non-finite (`metrics["unstable"]`, or a non-finite observation or reward)
 ends the episode and is never marked valid, so it never reaches the replay buffer.

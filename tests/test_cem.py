@@ -1,4 +1,4 @@
-"""Diagonal CEM against a numpy transcription of the update (DESIGN §2)."""
+"""Diagonal CEM against a numpy transcription of its update (module docstring of cem)."""
 
 import jax
 import jax.numpy as jnp
