@@ -179,3 +179,17 @@ def test_fused_evaluation_equals_standalone_evaluate():
     assert due_steps[0] == 100
     assert [s // 60 for s in due_steps] == sorted(set(s // 60 for s in due_steps))
     assert len(due_steps) >= 2
+
+
+def test_generation_step_has_no_host_round_trips():
+    """One device program per generation: no host callbacks, infeed/outfeed or send/recv."""
+    state = pgps.make_init(SMALL, ENV)(jax.random.PRNGKey(0))
+    program = pgps.make_generation_step(SMALL, ENV).lower(state).as_text()
+    assert "while" in program                               # the loops stay on the device
+    for marker in ("callback", "infeed", "outfeed", "send", "recv", "host"):
+        assert marker not in program.lower(), marker
+
+    def leaky(state):       # the check is real: a debug print is a host callback
+        jax.debug.print("{}", state.total_steps)
+        return pgps.generation_step(SMALL, ENV, state)
+    assert "callback" in jax.jit(leaky).lower(state).as_text().lower()
