@@ -196,8 +196,10 @@ def _validate(c: PGPSConfig) -> None:
              f"{c.num_elite_filtered} population slots Q-filtering fills")
     _require(c.warmup_steps <= c.buffer_size, "warmup_steps", c.warmup_steps,
              f"<= buffer_size={c.buffer_size}")
-    _require(c.pop_size * c.t_max <= c.buffer_size, "buffer_size", c.buffer_size,
-             f">= pop_size·t_max = {c.pop_size * c.t_max} (one generation's transitions)")
+    episodes = c.pop_size + int(c.td3_probe)
+    _require(episodes * c.t_max <= c.buffer_size, "buffer_size", c.buffer_size,
+             f">= {episodes} episodes × t_max = {episodes * c.t_max} (one generation's "
+             "transitions)")
     for name in ("actor_hidden", "critic_hidden"):
         widths = getattr(c, name)
         _require(len(widths) > 0 and all(int(w) > 0 for w in widths), name, widths,

@@ -49,7 +49,9 @@ def test_unknown_task_lists_choices():
     (dict(gamma=1.0), "gamma", "[0, 1)"),
     (dict(actor_lr=-1e-3), "actor_lr", "> 0"),
     (dict(t_init=2000), "t_init", "<= t_max=1000"),
-    (dict(buffer_size=5000, warmup_steps=1000), "buffer_size", "pop_size·t_max"),
+    (dict(buffer_size=5000, warmup_steps=1000), "buffer_size", "10 episodes × t_max = 10000"),
+    (dict(buffer_size=10_000, warmup_steps=1000, pg_guides_ea=False), "buffer_size",
+     "11 episodes × t_max = 11000"),
 ])
 def test_invalid_values_name_field_value_and_range(changes, field, hint):
     with pytest.raises(ValueError) as err:
