@@ -162,18 +162,6 @@ class TD3:
         c = self.config
         batches = (max_update, c.batch_size)
 
-        def critic_step(i, carry):
-            state, total, rows, noise = carry
-            state, loss = self.critic_update(state, replay.gather(buffer, rows[i]), noise[i])
-            return state, total + loss, rows, noise
-
-        def actor_step(i, carry):
-            state, total, rows, weight = carry
-            obs = buffer.data.obs[rows[i]]
-            elite_actions = self.actor_net.apply(elite_actor, obs)
-            state, loss = self.actor_update(state, obs, elite_actions, weight)
-            return state, total + loss, rows, weight
-
         def block(b, carry):
             state, beta, critic_total, actor_total = carry
             ss2_key, critic_key, noise_key, actor_key = jax.random.split(
@@ -183,16 +171,28 @@ class TD3:
                                        self.actor_net.apply(elite_actor, ss2))
             beta = jnp.where(guided, adapt_beta(beta, distance, c.d_target, c.beta_min,
                                                 c.beta_max), beta)
+            critic_rows = replay.random_rows(buffer, critic_key, batches)
             noise = self.smoothing_noise(noise_key, batches + (self.action_size,))
-            state, critic_total, _, _ = repeat(
-                num_update, critic_step,
-                (state, critic_total, replay.random_rows(buffer, critic_key, batches), noise),
-                c.update_unroll)
+            actor_rows = replay.random_rows(buffer, actor_key, batches)
             weight = jnp.where(guided, beta, 0.0)
-            state, actor_total, _, _ = repeat(
-                num_update, actor_step,
-                (state, actor_total, replay.random_rows(buffer, actor_key, batches), weight),
-                c.update_unroll)
+
+            def critic_step(i, carry):
+                state, total = carry
+                state, loss = self.critic_update(state, replay.gather(buffer, critic_rows[i]),
+                                                 noise[i])
+                return state, total + loss
+
+            def actor_step(i, carry):
+                state, total = carry
+                obs = buffer.data.obs[actor_rows[i]]
+                elite_actions = self.actor_net.apply(elite_actor, obs)
+                state, loss = self.actor_update(state, obs, elite_actions, weight)
+                return state, total + loss
+
+            state, critic_total = repeat(num_update, critic_step, (state, critic_total),
+                                         c.update_unroll)
+            state, actor_total = repeat(num_update, actor_step, (state, actor_total),
+                                        c.update_unroll)
             return state, beta, critic_total, actor_total
 
         zero = jnp.zeros((), jnp.float32)
