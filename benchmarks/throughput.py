@@ -9,9 +9,9 @@ Q-filtering active:
     MLPs, optax Adam, a `lax.scan`), batch 256; (c) sequential env steps per 1M-step run ×
     (a) + updates per run × (b).
   - critic and actor updates per second of the project's TD3 at batch 256.
-With --full-run TASK: the wall-clock of a whole 1M-step run (generation_step and evaluate every
-10,000 steps, as the CLI does, without file I/O) for 1 seed and for 5 seeds vmapped; compile
-time reported separately.
+With --full-run TASK: the wall-clock of a whole 1M-step run (as the CLI runs it, without file
+I/O: a test evaluation begun every 10,000 steps inside generation_step) for 1 seed and for 5
+seeds vmapped; compile time reported separately.
 
     python benchmarks/throughput.py --tasks halfcheetah hopper --full-run halfcheetah
 """
@@ -34,6 +34,7 @@ from env_latency import bare_rollout  # noqa: E402  (sibling benchmark: the phys
 
 from pgps_jax import buffer as replay  # noqa: E402
 from pgps_jax import cem, pgps  # noqa: E402
+from pgps_jax.compile_ahead import compile_ahead  # noqa: E402
 from pgps_jax.config import for_task  # noqa: E402
 from pgps_jax.envs import TASKS, make_env  # noqa: E402
 from pgps_jax.rollout import run_episodes  # noqa: E402
@@ -175,11 +176,14 @@ def components(task: str) -> dict:
     step = pgps.make_generation_step(config, env, donate=False)
     no_eval = state.replace(next_eval=jnp.asarray(2**30, jnp.int32))
     _, generation_s = timed(step, no_eval, repeats=2)
-    _, generation_eval_s = timed(step, state, repeats=2)
+    _, generation_eval_s = timed(step, state, repeats=2)    # an evaluation begins alongside
 
+    def critic_update(t, batch, k):     # standalone: with its own π' forward pass
+        noise = td3.smoothing_noise(k, (256, env.action_size))
+        return td3.critic_update(t, batch, td3.target_actions(t.actor_target, batch.next_obs,
+                                                              noise))[0]
     critic_fn = jax.jit(lambda s: jax.lax.scan(
-        lambda t, k: (td3.critic_update(t, replay.sample(s.buffer, k, 256),
-                                        td3.smoothing_noise(k, (256, env.action_size)))[0], None),
+        lambda t, k: (critic_update(t, replay.sample(s.buffer, k, 256), k), None),
         s.td3, jax.random.split(key, UPDATE_STEPS))[0])
     no_elite = jnp.zeros((256, env.action_size))
     actor_fn = jax.jit(lambda s: jax.lax.scan(
@@ -206,7 +210,7 @@ def components(task: str) -> dict:
             "population_rollout": rollout_s * 1e3, "evaluation_30_episodes": eval_s * 1e3,
             "q_filter": qfilter_s * 1e3, "cem_update": tell_s * 1e3,
             "td3_updates": train_s * 1e3, "generation_step_total": generation_s * 1e3,
-            "generation_step_total_with_fused_eval": generation_eval_s * 1e3,
+            "generation_step_total_with_eval_alongside": generation_eval_s * 1e3,
             "generation_T": int(pgps.episode_limit(state.total_steps, config))},
         "per_env_step_ms": {"population": env_ms, "evaluation": eval_ms, "floor_bare_mjx": bare_ms,
                             "population_over_floor": env_ms / bare_ms},
@@ -225,40 +229,54 @@ def components(task: str) -> dict:
 
 # ---------------------------------------------------------------------------- full 1M-step run
 def full_run(task: str, seeds: int) -> dict:
-    """A whole 1M-step run, evaluated every 10k steps inside generation_step, as the CLI runs
-    it without file I/O: wall-clock, compile time, generations and the eval curve of μ."""
+    """A whole 1M-step run as the CLI runs it, without file I/O: programs compiled ahead of
+    time side by side, a test evaluation begun every 10k steps inside generation_step, the one
+    under way finished and the final state evaluated at the end. Wall-clock, compile time,
+    generations and the eval curve of μ."""
     config = bench_config(task).replace(eval_every=EVAL_EVERY)
     env = make_env(task)
     keys = jax.random.split(jax.random.PRNGKey(0), seeds)
     eval_keys = jax.vmap(lambda s: jax.random.PRNGKey(s + 100))(jnp.arange(seeds))
+    bind = functools.partial
     if seeds == 1:
-        init = pgps.make_init(config, env)
-        step = pgps.make_generation_step(config, env)
-        evaluate = pgps.make_evaluate(config, env)
+        programs = {"init": pgps.make_init(config, env),
+                    "step": pgps.make_generation_step(config, env),
+                    "finish": pgps.make_finish_evaluation(config, env),
+                    "evaluate": pgps.make_evaluate(config, env)}
         keys, eval_keys = keys[0], eval_keys[0]
+        abstract = jax.eval_shape(bind(pgps.init, config, env), keys, eval_keys)
     else:
-        init = jax.jit(jax.vmap(functools.partial(pgps.init, config, env)))
-        step = jax.jit(jax.vmap(functools.partial(pgps.generation_step, config, env)),
-                       donate_argnums=0)
-        evaluate = jax.jit(jax.vmap(functools.partial(pgps.evaluate, config, env)))
+        programs = {
+            "init": jax.jit(jax.vmap(bind(pgps.init, config, env))),
+            "step": jax.jit(jax.vmap(bind(pgps.generation_step, config, env)), donate_argnums=0),
+            "finish": jax.jit(jax.vmap(bind(pgps.finish_evaluation, config, env)),
+                              donate_argnums=0),
+            "evaluate": jax.jit(jax.vmap(bind(pgps.evaluate, config, env)))}
+        abstract = jax.eval_shape(jax.vmap(bind(pgps.init, config, env)), keys, eval_keys)
     start = time.perf_counter()
-    init_compiled = init.lower(keys, eval_keys).compile()
-    compile_s = time.perf_counter() - start
-    state = init_compiled(keys, eval_keys)
-    t = time.perf_counter()
-    step_compiled = step.lower(state).compile()
-    step_compile_s = time.perf_counter() - t
-    evaluate_compiled = evaluate.lower(state).compile()
-    compile_s += time.perf_counter() - t
+    compiled = compile_ahead({name: (fn, (keys, eval_keys) if name == "init" else (abstract,))
+                              for name, fn in programs.items()})
+    step = compiled["step"].result()
+    step_compile_s = time.perf_counter() - start
+    init = compiled["init"].result()
+    compile_s = time.perf_counter() - start      # init and step compiled, side by side
+    state = init(keys, eval_keys)
     curve, generations = [], 0
-    while int(np.min(jax.device_get(state.total_steps))) < TOTAL_STEPS:
-        state, metrics = step_compiled(state)
-        generations += 1
-        due, step_at, mu = jax.device_get((metrics["eval/due"], metrics["eval/step"],
-                                           metrics["eval/mu_mean"]))
-        if np.any(due):
+
+    def record(metrics):
+        done, step_at, mu = jax.device_get((metrics["eval/done"], metrics["eval/step"],
+                                            metrics["eval/mu_mean"]))
+        if np.any(done):
             curve.append((np.asarray(step_at).tolist(), np.asarray(mu).tolist()))
-    final = np.asarray(evaluate_compiled(state)["eval/mu_mean"]).tolist()
+
+    while int(np.min(jax.device_get(state.total_steps))) < TOTAL_STEPS:
+        state, metrics = step(state)
+        generations += 1
+        record(metrics)
+    if np.any(jax.device_get(state.evaluation.active)):
+        state, metrics = compiled["finish"].result()(state)
+        record(metrics)
+    final = np.asarray(compiled["evaluate"].result()(state)["eval/mu_mean"]).tolist()
     wall = time.perf_counter() - start
     return {"task": task, "seeds": seeds, "wall_s_including_compile": wall,
             "compile_s": compile_s, "generation_step_compile_s": step_compile_s,

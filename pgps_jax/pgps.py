@@ -13,6 +13,13 @@ One generation (Algorithm 1, lines 6-37):
  4. TD3 trains for as many updates as the generation's env steps, in 5 blocks; if the TD3 actor
     fell behind (return < mean − std of the population), with the augmented loss toward the
     elite and an adaptive β (EA→PG, eq. 2-3).
+
+Test evaluation (Section 5.1) rides along: when `eval_every` env steps have passed, the
+generation snapshots μ, the TD3 actor and the elite and starts their test episodes in the same
+batch as the population's rollout. They advance with every later rollout — adding no
+sequential env steps — and their returns are reported by the generation in which they end. A
+rollout runs on past its population only when the next evaluation would otherwise fall due
+before this one has ended.
 """
 
 import functools
@@ -27,8 +34,17 @@ from pgps_jax import buffer as replay
 from pgps_jax import cem, qfilter
 from pgps_jax.config import PGPSConfig
 from pgps_jax.networks import actor_flattener, first_q, flatten
-from pgps_jax.rollout import random_warmup, run_episodes
+from pgps_jax.rollout import EpisodeState, begin_episodes, play, random_warmup, run_episodes
 from pgps_jax.td3 import TD3, TD3State
+
+
+@chex.dataclass(frozen=True)
+class EvaluationState:
+    """The test episodes under way (Section 5.1), carried from generation to generation."""
+    episodes: EpisodeState       # [A·E] episodes of the actors, E per actor, in EVALUATED order
+    actors: jax.Array            # [A, P] the actors as they were when the evaluation began
+    step: jax.Array              # [] int32 total_steps when it began
+    active: jax.Array            # [] bool, begun and not yet reported
 
 
 @chex.dataclass(frozen=True)
@@ -40,6 +56,7 @@ class TrainState:
     generation: jax.Array        # [] int32 generations completed
     total_steps: jax.Array       # [] int32 env steps so far, warm-up included
     next_eval: jax.Array         # [] int32 total_steps at which the next evaluation is due
+    evaluation: EvaluationState  # the test episodes under way
     key: jax.Array               # PRNG key
     eval_key: jax.Array          # PRNG key of the fixed evaluation start states
 
@@ -91,13 +108,18 @@ def init(config: PGPSConfig, env: Env, key: jax.Array,
                                            config.t_max)
         buffer = replay.add(buffer, transitions, valid)
         total_steps = steps_per_env * config.pop_size
-    return TrainState(cem=cem.init(flatten(td3_state.actor), config.sigma_init),
+    eval_key = jax.random.fold_in(key, 100) if eval_key is None else eval_key
+    mean = flatten(td3_state.actor)
+    idle = _begin_evaluation(config, env, jnp.stack([mean] * len(EVALUATED)), eval_key,
+                             jnp.zeros((), jnp.int32), active=False)
+    return TrainState(cem=cem.init(mean, config.sigma_init),
                       td3=td3_state, buffer=buffer,
                       beta=jnp.asarray(config.beta_init, jnp.float32),
                       generation=jnp.zeros((), jnp.int32),
                       total_steps=jnp.asarray(total_steps, jnp.int32),
-                      next_eval=jnp.zeros((), jnp.int32), key=next_key,
-                      eval_key=jax.random.fold_in(key, 100) if eval_key is None else eval_key)
+                      next_eval=jnp.zeros((), jnp.int32),
+                      evaluation=idle,
+                      key=next_key, eval_key=eval_key)
 
 
 def _population(config: PGPSConfig, td3: TD3, unflatten: Callable, state: TrainState,
@@ -152,24 +174,35 @@ def generation_step(config: PGPSConfig, env: Env,
         actors = jnp.concatenate([population, td3_flat[None]])
         limits = jnp.append(limits, jnp.where(td3_turn, limit, 0))
     num_rollout = actors.shape[0]
+
+    # test episodes: begin an evaluation when due; end it now if the next one would fall due
+    # before the next generation (this one's rollout adds at most sum(limits) env steps)
     eval_due = state.total_steps >= state.next_eval
-    eval_actors, eval_keys = evaluation_batch(_evaluated_actors(state), state.eval_key,
-                                              config.eval_episodes)
-    episodes = run_episodes(
-        env, _policy(td3, unflatten), jnp.concatenate([actors, eval_actors]),
-        jnp.concatenate([jax.random.split(reset_key, num_rollout), eval_keys]),
-        jnp.concatenate([limits, jnp.full((eval_actors.shape[0],),
-                                          jnp.where(eval_due, config.eval_steps, 0))]),
-        max(config.t_max, config.eval_steps))
-    buffer = replay.add(state.buffer,
-                        jax.tree.map(lambda x: x[:, :num_rollout], episodes.transitions),
-                        episodes.valid[:, :num_rollout])
-    interaction_steps = episodes.lengths[:num_rollout].sum()
-    evaluation = evaluation_metrics(episodes.returns[num_rollout:])
-    evaluation = {k: jnp.where(eval_due, v, jnp.nan) for k, v in evaluation.items()}
+    fresh = _begin_evaluation(config, env, _evaluated_actors(state), state.eval_key,
+                              state.total_steps)
+    ongoing = jax.tree.map(lambda a, b: jnp.where(eval_due, a, b), fresh, state.evaluation)
     next_eval = jnp.where(eval_due,
                           (state.total_steps // config.eval_every + 1) * config.eval_every,
                           state.next_eval)
+    finish_eval = state.total_steps + limits.sum() >= next_eval
+
+    eval_actors = jnp.repeat(ongoing.actors, config.eval_episodes, axis=0)
+    batch = jax.tree.map(lambda a, b: jnp.concatenate([a, b]),
+                         begin_episodes(env, jax.random.split(reset_key, num_rollout), limits),
+                         ongoing.episodes)
+    drive = jnp.arange(batch.alive.shape[0]) < num_rollout
+    batch, transitions, valid = play(env, _policy(td3, unflatten),
+                                     jnp.concatenate([actors, eval_actors]), batch,
+                                     max(config.t_max, config.eval_steps),
+                                     drive=drive | finish_eval)
+    episodes = jax.tree.map(lambda x: x[:num_rollout], batch)
+    eval_episodes = jax.tree.map(lambda x: x[num_rollout:], batch)
+    buffer = replay.add(state.buffer, jax.tree.map(lambda x: x[:, :num_rollout], transitions),
+                        valid[:, :num_rollout])
+    interaction_steps = episodes.lengths.sum()
+    eval_done = ongoing.active & ~jnp.any(eval_episodes.alive)
+    evaluation = evaluation_metrics(eval_episodes.returns)
+    evaluation = {k: jnp.where(eval_done, v, jnp.nan) for k, v in evaluation.items()}
 
     returns = episodes.returns[:n]
     new_cem = cem.tell(state.cem, population, returns, top_k=config.top_k,
@@ -189,7 +222,10 @@ def generation_step(config: PGPSConfig, env: Env,
     new_state = TrainState(cem=new_cem, td3=new_td3, buffer=buffer, beta=beta,
                            generation=generation,
                            total_steps=state.total_steps + interaction_steps,
-                           next_eval=next_eval, key=next_key, eval_key=state.eval_key)
+                           next_eval=next_eval,
+                           evaluation=ongoing.replace(episodes=eval_episodes,
+                                                      active=ongoing.active & ~eval_done),
+                           key=next_key, eval_key=state.eval_key)
     metrics = {
         "gen/generation": generation,
         "gen/total_steps": new_state.total_steps,
@@ -208,8 +244,8 @@ def generation_step(config: PGPSConfig, env: Env,
         "td3/beta": beta,
         **{f"pop/return_{i}": returns[i] for i in range(n)},
         **losses,
-        "eval/due": eval_due,
-        "eval/step": state.total_steps,
+        "eval/done": eval_done,
+        "eval/step": ongoing.step,
         **evaluation,
     }
     return new_state, metrics
@@ -217,6 +253,35 @@ def generation_step(config: PGPSConfig, env: Env,
 
 EVALUATED = ("mu", "td3", "elite")
 """The actors each evaluation tests, in batch order: the CEM mean μ, the TD3 actor, the elite."""
+
+
+def _begin_evaluation(config: PGPSConfig, env: Env, actors: jax.Array, key: jax.Array,
+                      step: jax.Array, active: bool = True) -> EvaluationState:
+    """Test episodes of `actors` [A, P] from the E start states of `key`, begun at `step`
+    (with `active` False: an idle evaluation whose episodes never run)."""
+    _, keys = evaluation_batch(actors, key, config.eval_episodes)
+    limit = config.eval_steps if active else 0
+    episodes = begin_episodes(env, keys, jnp.full((keys.shape[0],), limit))
+    return EvaluationState(episodes=episodes, actors=actors, step=step,
+                           active=jnp.asarray(active))
+
+
+def finish_evaluation(config: PGPSConfig, env: Env,
+                      state: TrainState) -> tuple[TrainState, dict]:
+    """Plays the evaluation under way to its end (for a run's last generation, whose test
+    episodes no later generation will advance). Returns the state and the `eval/*` metrics
+    that generation_step reports; `eval/done` is False when no evaluation was under way."""
+    td3, unflatten = _parts(config, env)
+    ongoing = state.evaluation
+    episodes, _, _ = play(env, _policy(td3, unflatten),
+                          jnp.repeat(ongoing.actors, config.eval_episodes, axis=0),
+                          ongoing.episodes, config.eval_steps, record=False)
+    done = ongoing.active
+    metrics = {k: jnp.where(done, v, jnp.nan)
+               for k, v in evaluation_metrics(episodes.returns).items()}
+    evaluation = ongoing.replace(episodes=episodes, active=jnp.asarray(False))
+    return (state.replace(evaluation=evaluation),
+            {"eval/done": done, "eval/step": ongoing.step, **metrics})
 
 
 def evaluation_batch(actors: jax.Array, key: jax.Array,
@@ -270,6 +335,13 @@ def make_generation_step(config: PGPSConfig, env: Env,
     donated by default, so the buffer is updated in place (do not reuse the state passed in)."""
     return jax.jit(functools.partial(generation_step, config, env),
                    donate_argnums=(0,) if donate else ())
+
+
+@functools.lru_cache(maxsize=None)
+def make_finish_evaluation(config: PGPSConfig,
+                           env: Env) -> Callable[[TrainState], tuple[TrainState, dict]]:
+    """Jitted `finish_evaluation` bound to `config` and `env` (cached; state donated)."""
+    return jax.jit(functools.partial(finish_evaluation, config, env), donate_argnums=(0,))
 
 
 @functools.lru_cache(maxsize=None)

@@ -4,6 +4,10 @@
 until the task terminates it or it reaches its step limit, with no auto-reset. Its loop stops
 as soon as every episode has ended, so short episodes cost short loops.
 
+Episodes can also outlive one loop: `begin_episodes` starts a batch, `play` advances it until
+the episodes that `drive` the loop have ended, and the others carry on at the next `play` from
+where they stopped (the test episodes that ride along with the population's rollouts).
+
 Termination and truncation: a terminal (unhealthy) step stores discount 0; an
 episode cut at its step limit stores discount 1 so the critic bootstraps through it. A step
 whose physics went non-finite (`metrics["unstable"]`, or a non-finite observation or reward)
@@ -20,6 +24,18 @@ from brax.envs.base import Env, State
 from pgps_jax.buffer import Transition
 
 Policy = Callable[[chex.ArrayTree, jax.Array], jax.Array]  # (params, obs) -> action
+
+
+@chex.dataclass(frozen=True)
+class EpisodeState:
+    """A batch of episodes under way (leading dim B on every field)."""
+    env: State                # the env state each episode has reached
+    limits: jax.Array         # [B] int32 step cap T of each episode
+    alive: jax.Array          # [B] bool, still running
+    returns: jax.Array        # [B] undiscounted return so far
+    discounted: jax.Array     # [B] Σ_t γ^t r_t so far
+    lengths: jax.Array        # [B] int32 env steps taken (interaction steps)
+    unstable: jax.Array       # [B] bool, the episode ended on a non-finite physics state
 
 
 @chex.dataclass(frozen=True)
@@ -46,6 +62,68 @@ def _select(pred: jax.Array, on_true, on_false):
     return jax.tree.map(pick, on_true, on_false)
 
 
+def begin_episodes(env: Env, reset_keys: jax.Array, step_limits: jax.Array) -> EpisodeState:
+    """Fresh episodes from `reset_keys` [B]; step_limits [B] caps each (0: the slot stays idle)."""
+    batch = reset_keys.shape[0]
+    return EpisodeState(env=jax.vmap(env.reset)(reset_keys),
+                        limits=jnp.asarray(step_limits, jnp.int32),
+                        alive=jnp.asarray(step_limits, jnp.int32) > 0,
+                        returns=jnp.zeros((batch,)), discounted=jnp.zeros((batch,)),
+                        lengths=jnp.zeros((batch,), jnp.int32), unstable=jnp.zeros((batch,), bool))
+
+
+def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeState,
+         max_steps: int, record: bool = True, gamma: float = 1.0,
+         drive: jax.Array | None = None) -> tuple[EpisodeState, Transition, jax.Array]:
+    """Steps every live episode until none of those marked in `drive` [B] (default: all) is
+    alive; the others advance alongside and may still be alive at the end.
+
+    Returns the episodes, the transitions [max_steps, B] (row t = the loop's t-th step;
+    empty [0, B] unless `record`) and their validity [max_steps, B]. No episode may have more
+    than `max_steps` steps left.
+    """
+    batch = episodes.alive.shape[0]
+    drive = jnp.ones((batch,), bool) if drive is None else drive
+    act = jax.vmap(policy)
+    rows = max_steps if record else 0
+    empty = Transition(obs=jnp.zeros((rows, batch, env.observation_size)),
+                       action=jnp.zeros((rows, batch, env.action_size)),
+                       reward=jnp.zeros((rows, batch)),
+                       next_obs=jnp.zeros((rows, batch, env.observation_size)),
+                       discount=jnp.zeros((rows, batch)))
+
+    def cond(c):
+        return jnp.any(c["episodes"].alive & drive)
+
+    def body(c):
+        e = c["episodes"]
+        state, alive = e.env, e.alive
+        action = act(params, state.obs)
+        nxt = jax.vmap(env.step)(state, action)
+        sound = _is_sound(nxt)
+        stored = alive & sound
+        reward = jnp.where(stored, nxt.reward, 0.0)
+        lengths = e.lengths + alive
+        e = e.replace(env=_select(alive, nxt, state), lengths=lengths,
+                      returns=e.returns + reward,
+                      discounted=e.discounted + gamma ** e.lengths * reward,
+                      unstable=e.unstable | (alive & ~sound),
+                      alive=stored & (nxt.done == 0) & (lengths < e.limits))
+        out = dict(c, t=c["t"] + 1, episodes=e)
+        if record:
+            step = Transition(obs=state.obs, action=action, reward=nxt.reward,
+                              next_obs=nxt.obs, discount=1.0 - nxt.done)
+            out["transitions"] = jax.tree.map(lambda buf, x: buf.at[c["t"]].set(x),
+                                              c["transitions"], step)
+            out["valid"] = c["valid"].at[c["t"]].set(stored)
+        return out
+
+    c = jax.lax.while_loop(cond, body, dict(t=jnp.zeros((), jnp.int32), episodes=episodes,
+                                            transitions=empty,
+                                            valid=jnp.zeros((rows, batch), bool)))
+    return c["episodes"], c["transitions"], c["valid"]
+
+
 def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: jax.Array,
                  step_limits: jax.Array, max_steps: int, record: bool = True,
                  gamma: float = 1.0) -> Episodes:
@@ -55,48 +133,11 @@ def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: j
     record: keep the transitions (population rollouts) or only returns (evaluation).
     gamma: discount of the `discounted` returns (J(s_0) of Appendix A).
     """
-    batch = reset_keys.shape[0]
-    state = jax.vmap(env.reset)(reset_keys)
-    act = jax.vmap(policy)
-    rows = max_steps if record else 0
-    empty = Transition(obs=jnp.zeros((rows, batch, env.observation_size)),
-                       action=jnp.zeros((rows, batch, env.action_size)),
-                       reward=jnp.zeros((rows, batch)),
-                       next_obs=jnp.zeros((rows, batch, env.observation_size)),
-                       discount=jnp.zeros((rows, batch)))
-    carry = dict(t=jnp.zeros((), jnp.int32), state=state, alive=step_limits > 0,
-                 returns=jnp.zeros((batch,)), discounted=jnp.zeros((batch,)),
-                 lengths=jnp.zeros((batch,), jnp.int32),
-                 unstable=jnp.zeros((batch,), bool), transitions=empty,
-                 valid=jnp.zeros((rows, batch), bool))
-
-    def cond(c):
-        return jnp.any(c["alive"])
-
-    def body(c):
-        state, alive = c["state"], c["alive"]
-        action = act(params, state.obs)
-        nxt = jax.vmap(env.step)(state, action)
-        sound = _is_sound(nxt)
-        stored = alive & sound
-        lengths = c["lengths"] + alive
-        reward = jnp.where(stored, nxt.reward, 0.0)
-        out = dict(c, t=c["t"] + 1, lengths=lengths, returns=c["returns"] + reward,
-                   discounted=c["discounted"] + gamma ** c["t"] * reward,
-                   unstable=c["unstable"] | (alive & ~sound),
-                   alive=stored & (nxt.done == 0) & (lengths < step_limits),
-                   state=_select(alive, nxt, state))
-        if record:
-            step = Transition(obs=state.obs, action=action, reward=nxt.reward,
-                              next_obs=nxt.obs, discount=1.0 - nxt.done)
-            out["transitions"] = jax.tree.map(lambda buf, x: buf.at[c["t"]].set(x),
-                                              c["transitions"], step)
-            out["valid"] = c["valid"].at[c["t"]].set(stored)
-        return out
-
-    c = jax.lax.while_loop(cond, body, carry)
-    return Episodes(returns=c["returns"], discounted=c["discounted"], lengths=c["lengths"],
-                    unstable=c["unstable"], transitions=c["transitions"], valid=c["valid"])
+    e, transitions, valid = play(env, policy, params,
+                                 begin_episodes(env, reset_keys, step_limits), max_steps,
+                                 record=record, gamma=gamma)
+    return Episodes(returns=e.returns, discounted=e.discounted, lengths=e.lengths,
+                    unstable=e.unstable, transitions=transitions, valid=valid)
 
 
 def random_warmup(env: Env, key: jax.Array, num_envs: int, steps_per_env: int,

@@ -8,9 +8,14 @@
 - β rule (eq. 3): β·2 if D > 1.5·D_target, β/2 if D < D_target/1.5, clamped.
 - Schedule (Appendix B): after each generation, `update_blocks` blocks of num_update critic
   updates followed by num_update actor updates; targets move by τ after every update.
+
+Within a block's critic updates π' does not move, and the elite never moves during training,
+so `train` computes the smoothed target actions and the elite's actions of a whole block in
+a few large batches before its update loops, which then run only what changes each update.
 """
 
 import dataclasses
+import functools
 
 import chex
 import jax
@@ -20,6 +25,10 @@ import optax
 from pgps_jax import buffer as replay
 from pgps_jax.config import PGPSConfig
 from pgps_jax.networks import Actor, TwinCritic, first_q
+
+
+_PRECOMPUTE_UPDATES = 32
+"""Updates whose target (or elite) actions one batched forward pass computes in `train`."""
 
 
 @chex.dataclass(frozen=True)
@@ -106,20 +115,22 @@ class TD3:
         return jnp.clip(c.policy_noise * jax.random.normal(key, shape), -c.noise_clip,
                         c.noise_clip)
 
+    def target_actions(self, actor_target, next_obs: jax.Array, noise: jax.Array) -> jax.Array:
+        """Smoothed target actions clip(π'(s') + noise, −1, 1): [..., action_size]."""
+        return jnp.clip(self.actor_net.apply(actor_target, next_obs) + noise, -1.0, 1.0)
+
     def critic_targets(self, state: TD3State, batch: replay.Transition,
-                       noise: jax.Array) -> jax.Array:
-        """y = r + γ·discount·min(Q1', Q2')(s', clip(π'(s') + noise, −1, 1)): [B]."""
+                       next_action: jax.Array) -> jax.Array:
+        """y = r + γ·discount·min(Q1', Q2')(s', a'), a' from `target_actions`: [B]."""
         c = self.config
-        next_action = jnp.clip(self.actor_net.apply(state.actor_target, batch.next_obs) + noise,
-                               -1.0, 1.0)
         next_q = self.critic_net.apply(state.critic_target, batch.next_obs, next_action)
         return batch.reward + c.gamma * batch.discount * jnp.min(next_q, axis=0)
 
     def critic_update(self, state: TD3State, batch: replay.Transition,
-                      noise: jax.Array) -> tuple[TD3State, jax.Array]:
-        """One clipped double-Q step on `batch` with smoothing `noise` [B, action_size], then
-        Q' ← τ·Q + (1 − τ)·Q'."""
-        target = jax.lax.stop_gradient(self.critic_targets(state, batch, noise))
+                      next_action: jax.Array) -> tuple[TD3State, jax.Array]:
+        """One clipped double-Q step on `batch` with smoothed target actions `next_action`
+        [B, action_size], then Q' ← τ·Q + (1 − τ)·Q'."""
+        target = jax.lax.stop_gradient(self.critic_targets(state, batch, next_action))
 
         def loss_fn(params):
             q = self.critic_net.apply(params, batch.obs, batch.action)
@@ -156,11 +167,15 @@ class TD3:
         When `guided` (the TD3 actor fell behind), each block first draws SS_2 and adapts β
         (eq. 3), then trains the actor on L^A toward `elite_actor`; otherwise on L^O.
         `max_update` (static) bounds num_update: each block draws the rows and the smoothing
-        noise of up to that many updates in one go, keeping random-number generation out of
-        the update loop. Returns the new state, the new β and mean losses.
+        noise of up to that many updates in one go, and computes their target actions (and,
+        when guided, the elite's actions) in batches of `_PRECOMPUTE_UPDATES` updates, keeping
+        all of that out of the update loops. Returns the new state, the new β and mean losses.
         """
         c = self.config
         batches = (max_update, c.batch_size)
+
+        def in_batches(fn, *per_update):        # fn over [max_update, B, ...] inputs
+            return jax.lax.map(lambda xs: fn(*xs), per_update, batch_size=_PRECOMPUTE_UPDATES)
 
         def block(b, carry):
             state, beta, critic_total, actor_total = carry
@@ -173,24 +188,30 @@ class TD3:
                                                 c.beta_max), beta)
             critic_rows = replay.random_rows(buffer, critic_key, batches)
             noise = self.smoothing_noise(noise_key, batches + (self.action_size,))
+            next_actions = in_batches(functools.partial(self.target_actions, state.actor_target),
+                                      buffer.data.next_obs[critic_rows], noise)
             actor_rows = replay.random_rows(buffer, actor_key, batches)
             weight = jnp.where(guided, beta, 0.0)
 
             def critic_step(i, carry):
                 state, total = carry
                 state, loss = self.critic_update(state, replay.gather(buffer, critic_rows[i]),
-                                                 noise[i])
-                return state, total + loss
-
-            def actor_step(i, carry):
-                state, total = carry
-                obs = buffer.data.obs[actor_rows[i]]
-                elite_actions = self.actor_net.apply(elite_actor, obs)
-                state, loss = self.actor_update(state, obs, elite_actions, weight)
+                                                 next_actions[i])
                 return state, total + loss
 
             state, critic_total = repeat(num_update, critic_step, (state, critic_total),
                                          c.update_unroll)
+            elite_actions = jax.lax.cond(
+                guided, lambda: in_batches(functools.partial(self.actor_net.apply, elite_actor),
+                                           buffer.data.obs[actor_rows]),
+                lambda: jnp.zeros(batches + (self.action_size,)))
+
+            def actor_step(i, carry):
+                state, total = carry
+                state, loss = self.actor_update(state, buffer.data.obs[actor_rows[i]],
+                                                elite_actions[i], weight)
+                return state, total + loss
+
             state, actor_total = repeat(num_update, actor_step, (state, actor_total),
                                         c.update_unroll)
             return state, beta, critic_total, actor_total

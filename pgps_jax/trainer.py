@@ -1,13 +1,16 @@
 """The host-side training loop of `python -m pgps_jax.train` (see `pgps_jax.train`).
 
-It calls the jitted `generation_step` (compiled once, state donated) and fetches each
-generation's metrics with one `jax.device_get`, then writes the logs and checkpoints. The
-test evaluation runs inside `generation_step`, in the rollout's batch, whenever the env steps
-have reached a multiple of `eval_every` (and in the first generation, after the warm-up); it
-evaluates the state the generation starts from, so its row carries that state's step count.
-After the last generation the final state is evaluated with `pgps.evaluate`. Checkpoints are
-written every `checkpoint_every` generations, at the end and on SIGINT / SIGTERM. Nothing here
-runs inside jit. The run directory's contents are listed in `pgps_jax.run_dir`.
+It calls the compiled `generation_step` (state donated) and fetches each generation's metrics
+with one `jax.device_get`, then writes the logs and checkpoints. The test evaluation runs
+inside `generation_step`, alongside the rollouts: it begins whenever the env steps have
+reached a multiple of `eval_every` (and in the first generation, after the warm-up), tests
+the actors of the state that generation starts from, and is written, under that state's step
+count, by the generation in which its episodes end. After the last generation an evaluation
+still under way is played to its end and the final state is evaluated with `pgps.evaluate`.
+Checkpoints are written every `checkpoint_every` generations, at the end and on SIGINT /
+SIGTERM. The programs compile ahead of time side by side (`compile_ahead`): `init` with
+`generation_step`, and the two end-of-run programs in the background while the run trains.
+Nothing here runs inside jit. The run directory's contents are listed in `pgps_jax.run_dir`.
 """
 
 import functools
@@ -24,6 +27,7 @@ from tqdm import tqdm
 from pgps_jax import pgps
 from pgps_jax import run_dir as rundir
 from pgps_jax.checkpoint import Checkpoints
+from pgps_jax.compile_ahead import compile_ahead
 from pgps_jax.networks import flatten as flatten_params
 from pgps_jax.run_config import UsageError
 
@@ -40,11 +44,11 @@ class NonFiniteError(Exception):
 
 def _defined(key: str, metrics: Mapping[str, Any]) -> bool:
     """Whether `key` carries a value this generation: `td3/return` is NaN by design when the
-    TD3 actor did not play, `eval/*` when no evaluation was due."""
+    TD3 actor did not play, `eval/*` when no evaluation ended."""
     if key == "td3/return":
         return bool(metrics.get("td3/in_population", True))
     if key.startswith("eval/"):
-        return bool(metrics.get("eval/due", True))
+        return bool(metrics.get("eval/done", True))
     return True
 
 
@@ -93,8 +97,7 @@ class Trainer:
     def __init__(self, p: "Plan", env):
         self.p, self.run, self.config, self.dir = p, p.run, p.config, p.directory
         self.env = env
-        self.generation_step = pgps.make_generation_step(self.config, env)
-        self.evaluate = pgps.make_evaluate(self.config, env)
+        self.programs = {}
         self.checkpoints = Checkpoints(self.dir.checkpoints, self.run.keep_checkpoints)
         self.metrics_log = rundir.CsvLog(self.dir / rundir.METRICS,
                                          rundir.metrics_columns(self.config.pop_size))
@@ -120,18 +123,25 @@ class Trainer:
         """
         seed_key, eval_key = (jax.random.PRNGKey(self.run.seed),
                               jax.random.PRNGKey(self.run.seed + 100))
+        abstract = jax.eval_shape(functools.partial(pgps.init, self.config, self.env),
+                                  seed_key, eval_key)
+        c, env = self.config, self.env
+        programs = {"generation_step": (pgps.make_generation_step(c, env), (abstract,)),
+                    "finish_evaluation": (pgps.make_finish_evaluation(c, env), (abstract,)),
+                    "evaluate": (pgps.make_evaluate(c, env), (abstract,))}
+        if self.p.resume_step is None:
+            programs["init"] = (pgps.make_init(c, env), (seed_key, eval_key))
+        self.programs = compile_ahead(programs)
         if self.p.resume_step is None:
             for log in self.logs.values():
                 log.start()
             shutil.rmtree(self.dir / rundir.TENSORBOARD, ignore_errors=True)
             self.tensorboard = rundir.TensorBoard(self.dir / rundir.TENSORBOARD)
             self._open_bar()
-            state = pgps.make_init(self.config, self.env)(seed_key, eval_key)
+            state = self.programs["init"].result()(seed_key, eval_key)
             self.total = int(state.total_steps)
             self.bar.update(min(self.total, self.run.total_steps))
             return state
-        abstract = jax.eval_shape(functools.partial(pgps.init, self.config, self.env),
-                                  seed_key, eval_key)
         state, meta = self.checkpoints.restore(self.p.resume_step, abstract)
         for name, log in self.logs.items():
             log.reopen(meta["logs"][name])
@@ -160,7 +170,7 @@ class Trainer:
     def step(self, state):
         """One generation, its logs, and the evaluation / checkpoint when due."""
         start = time.perf_counter()
-        state, metrics = self.generation_step(state)
+        state, metrics = self.programs["generation_step"].result()(state)
         m = jax.device_get(metrics)
         seconds = time.perf_counter() - start
         previous = self.total
@@ -183,7 +193,7 @@ class Trainer:
                 f"generation {self.generation} ({self.total:,} env steps) produced a "
                 f"non-finite {bad} = {np.asarray(m[bad])}; stopping. This state was not "
                 f"checkpointed; {where}.")
-        if bool(m["eval/due"]):
+        if bool(m["eval/done"]):
             self._record_evaluation(int(m["eval/step"]), m)
         budget = self.run.total_steps
         self.bar.set_postfix_str(f"gen {self.generation}, T {int(m['gen/episode_limit'])}, "
@@ -191,14 +201,21 @@ class Trainer:
         self.bar.update(min(self.total, budget) - min(previous, budget))
         done = self.total >= budget
         if done:
-            self.final_evaluation(state)
+            state = self.final_evaluation(state)
         if self.generation % self.run.checkpoint_every == 0 or done:
             self.save(state)
         return state
 
     def final_evaluation(self, state):
-        """Evaluates the state the run ends with (no later generation will)."""
-        self._record_evaluation(self.total, jax.device_get(self.evaluate(state)))
+        """Ends the evaluation under way, then evaluates the state the run ends with (no later
+        generation will do either). Returns the state."""
+        if bool(state.evaluation.active):
+            state, m = self.programs["finish_evaluation"].result()(state)
+            m = jax.device_get(m)
+            self._record_evaluation(int(m["eval/step"]), m)
+        self._record_evaluation(self.total,
+                                jax.device_get(self.programs["evaluate"].result()(state)))
+        return state
 
     def _last_eval_text(self) -> str:
         if not self.eval_rows:
@@ -217,7 +234,7 @@ class Trainer:
         self.policies_log.write(row)
         self.eval_rows.append(dict(zip(rundir.eval_policies_columns(), row)))
         self.tensorboard.scalars({k: v for k, v in e.items()
-                                  if k.startswith("eval/") and k != "eval/due"
+                                  if k.startswith("eval/") and k != "eval/done"
                                   and k != "eval/step" and np.ndim(v) == 0}, step)
         rundir.plot_learning_curve(self.dir / rundir.CURVE, self.eval_rows,
                                    f"PGPS {self.run.env}, seed {self.run.seed}")

@@ -155,30 +155,63 @@ def test_training_raises_the_return_of_mu():
     assert after["eval/mu_returns"].shape == (3,)
 
 
-def test_fused_evaluation_equals_standalone_evaluate():
-    config = SMALL.replace(eval_every=60)
+def test_evaluation_rides_along_and_equals_standalone_evaluate():
+    """Test episodes begun when due run alongside later rollouts; the generation in which they
+    end reports exactly what `evaluate` gives for the state they began from."""
+    config = SMALL.replace(eval_every=100)      # generations of 40-80 steps, tests of 20 steps
     state = pgps.make_init(config, ENV)(jax.random.PRNGKey(5), jax.random.PRNGKey(5 + 100))
     step = pgps.make_generation_step(config, ENV, donate=False)
     evaluate = pgps.make_evaluate(config, ENV)
-    due_steps = []
-    for _ in range(4):
-        expected = evaluate(state)
-        entering_steps = int(state.total_steps)
+    expected, begun_in, reported = {}, {}, []
+    for generation in range(8):
+        if int(state.total_steps) >= int(state.next_eval):
+            assert not bool(state.evaluation.active)    # never two evaluations at once
+            expected[int(state.total_steps)] = evaluate(state)
+            begun_in[int(state.total_steps)] = generation
         state, metrics = step(state)
-        if bool(metrics["eval/due"]):
-            due_steps.append(int(metrics["eval/step"]))
-            assert int(metrics["eval/step"]) == entering_steps
+        if bool(metrics["eval/done"]):
+            at = int(metrics["eval/step"])
+            reported.append((at, generation))
             for name in ("mu", "td3", "elite"):
                 np.testing.assert_allclose(metrics[f"eval/{name}_returns"],
-                                           expected[f"eval/{name}_returns"], rtol=1e-5)
+                                           expected[at][f"eval/{name}_returns"], rtol=1e-5)
         else:
             assert np.isnan(float(metrics["eval/mu_mean"]))
         # test episodes are neither stored nor counted
         assert int(state.buffer.size) == int(state.total_steps)
-    # due at the first generation, then once each time the total crosses a multiple of 60
-    assert due_steps[0] == 100
-    assert [s // 60 for s in due_steps] == sorted(set(s // 60 for s in due_steps))
-    assert len(due_steps) >= 2
+    steps = [at for at, _ in reported]
+    # begun at the first generation, then once each time the total crosses a multiple of 100
+    assert steps[0] == 100 and len(steps) >= 3
+    assert [s // 100 for s in steps] == sorted(set(s // 100 for s in steps))
+    assert set(steps) == set(expected)
+    # the first test (20 steps) outlives the first rollout (10 steps) and ends in the next one
+    assert reported[0][1] == begun_in[100] + 1
+    assert all(generation >= begun_in[at] for at, generation in reported)
+
+
+def test_evaluation_ends_before_the_next_falls_due():
+    """When the next evaluation falls due after this generation, the rollout runs on until the
+    test episodes under way have ended, so no evaluation is skipped or cut short."""
+    config = SMALL.replace(eval_every=40)       # due every generation
+    state, history = run(config, 2, 5)
+    done = [bool(m["eval/done"]) for m in history]
+    assert all(done)
+    steps = [int(m["eval/step"]) for m in history]
+    assert steps == sorted(steps) and len(set(steps)) == 5
+
+
+def test_finish_evaluation_completes_the_test_under_way():
+    config = SMALL.replace(eval_every=100)
+    state = pgps.make_init(config, ENV)(jax.random.PRNGKey(3), jax.random.PRNGKey(103))
+    expected = pgps.make_evaluate(config, ENV)(state)
+    state, metrics = pgps.make_generation_step(config, ENV)(state)
+    assert not bool(metrics["eval/done"]) and bool(state.evaluation.active)
+    state, metrics = pgps.make_finish_evaluation(config, ENV)(state)
+    assert bool(metrics["eval/done"]) and int(metrics["eval/step"]) == 100
+    np.testing.assert_allclose(metrics["eval/mu_returns"], expected["eval/mu_returns"], rtol=1e-5)
+    assert not bool(state.evaluation.active)
+    _, again = pgps.make_finish_evaluation(config, ENV)(state)
+    assert not bool(again["eval/done"]) and np.isnan(float(again["eval/mu_mean"]))
 
 
 def test_generation_step_has_no_host_round_trips():

@@ -135,8 +135,8 @@ def test_first_non_finite_names_the_loss_first():
     assert first_non_finite({"td3/return": float("nan"), "td3/in_population": True}) == "td3/return"
     assert first_non_finite({"gen/generation": 3, "x": 1.5}) is None
     # eval/* is NaN by design when no evaluation was due
-    assert first_non_finite({"eval/due": False, "eval/mu_mean": float("nan")}) is None
-    assert first_non_finite({"eval/due": True, "eval/mu_mean": float("nan")}) == "eval/mu_mean"
+    assert first_non_finite({"eval/done": False, "eval/mu_mean": float("nan")}) is None
+    assert first_non_finite({"eval/done": True, "eval/mu_mean": float("nan")}) == "eval/mu_mean"
 
 
 def test_eval_every_is_set_in_one_place():

@@ -62,7 +62,9 @@ def test_critic_target_matches_hand_computation(setup):
     next_action = np.clip(np_actor(state.actor_target, np.asarray(batch.next_obs)) + noise, -1, 1)
     q_next = np_twin_q(state.critic_target, np.asarray(batch.next_obs), next_action)
     expected = np.asarray(batch.reward) + 0.99 * np.asarray(batch.discount) * q_next.min(0)
-    np.testing.assert_allclose(td3.critic_targets(state, batch, jnp.asarray(noise)), expected,
+    target_actions = td3.target_actions(state.actor_target, batch.next_obs, jnp.asarray(noise))
+    np.testing.assert_allclose(target_actions, next_action, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(td3.critic_targets(state, batch, target_actions), expected,
                                rtol=1e-5, atol=1e-5)
 
 
@@ -77,16 +79,18 @@ def test_smoothing_noise_is_clipped_gaussian(setup):
 def test_terminal_transitions_do_not_bootstrap(setup):
     td3, state, batch = setup
     terminal = batch.replace(discount=jnp.zeros(BATCH))
-    noise = td3.smoothing_noise(jax.random.PRNGKey(0), (BATCH, ACT))
-    np.testing.assert_allclose(td3.critic_targets(state, terminal, noise), batch.reward,
+    next_action = td3.target_actions(state.actor_target, batch.next_obs,
+                                     td3.smoothing_noise(jax.random.PRNGKey(0), (BATCH, ACT)))
+    np.testing.assert_allclose(td3.critic_targets(state, terminal, next_action), batch.reward,
                                rtol=1e-6)
 
 
 def test_critic_loss_is_sum_of_twin_mse(setup):
     td3, state, batch = setup
-    noise = td3.smoothing_noise(jax.random.PRNGKey(3), (BATCH, ACT))
-    new, loss = td3.critic_update(state, batch, noise)
-    target = np.asarray(td3.critic_targets(state, batch, noise))
+    next_action = td3.target_actions(state.actor_target, batch.next_obs,
+                                     td3.smoothing_noise(jax.random.PRNGKey(3), (BATCH, ACT)))
+    new, loss = td3.critic_update(state, batch, next_action)
+    target = np.asarray(td3.critic_targets(state, batch, next_action))
     q = np_twin_q(state.critic, np.asarray(batch.obs), np.asarray(batch.action))
     np.testing.assert_allclose(loss, ((q - target) ** 2).mean(1).sum(), rtol=1e-5)
 
@@ -188,3 +192,36 @@ def test_unrolled_repeat_equals_plain_loop():
         plain = jax.lax.fori_loop(0, num, body, jnp.asarray(1.0))
         np.testing.assert_allclose(repeat(jnp.asarray(num), body, jnp.asarray(1.0), 4), plain,
                                    rtol=1e-6)
+
+
+def test_train_equals_the_updates_one_by_one(setup):
+    """Batched target and elite actions give what per-update forward passes give: π' moves only
+    in the actor phase and the elite never, so precomputing them per block changes nothing."""
+    td3, state, _ = setup
+    buf = _filled_buffer()
+    key, num_update, max_update, beta = jax.random.PRNGKey(4), 3, 4, jnp.asarray(0.3)
+    elite = td3.init(jax.random.PRNGKey(9)).actor
+    new, new_beta, _ = td3.train(state, buf, key, jnp.asarray(num_update), max_update, elite,
+                                 jnp.asarray(True), beta)
+
+    reference = state
+    for b in range(td3.config.update_blocks):   # Appendix B, written out with its draws
+        ss2_key, critic_key, noise_key, actor_key = jax.random.split(jax.random.fold_in(key, b), 4)
+        ss2 = replay.sample_obs(buf, ss2_key, td3.config.ss2_size)
+        beta = adapt_beta(beta, action_distance(td3.actor_net.apply(reference.actor, ss2),
+                                                td3.actor_net.apply(elite, ss2)),
+                          0.05, 1e-3, 1024.0)
+        critic_rows = replay.random_rows(buf, critic_key, (max_update, td3.config.batch_size))
+        noise = td3.smoothing_noise(noise_key, (max_update, td3.config.batch_size, ACT))
+        actor_rows = replay.random_rows(buf, actor_key, (max_update, td3.config.batch_size))
+        for i in range(num_update):
+            batch = replay.gather(buf, critic_rows[i])
+            reference, _ = td3.critic_update(
+                reference, batch, td3.target_actions(reference.actor_target, batch.next_obs,
+                                                     noise[i]))
+        for i in range(num_update):
+            obs = buf.data.obs[actor_rows[i]]
+            reference, _ = td3.actor_update(reference, obs, td3.actor_net.apply(elite, obs), beta)
+    assert float(new_beta) == pytest.approx(float(beta))
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5),
+                 new, reference)

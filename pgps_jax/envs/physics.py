@@ -1,7 +1,7 @@
 """MuJoCo models from Brax's assets, their solver settings, and the frame-skip step on MJX.
 
-An env step is `n_frames` calls of `mjx.step` in a `lax.fori_loop`, with the control held
-fixed (Gym's `do_simulation`). Nothing else is computed per frame.
+An env step is `n_frames` calls of `mjx.step`, with the control held fixed (Gym's
+`do_simulation`). Nothing else is computed per frame.
 """
 
 import dataclasses
@@ -70,5 +70,12 @@ def init_qpos(model: mujoco.MjModel) -> np.ndarray:
 
 
 def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int) -> mjx.Data:
-    """Advances `data` by `n_frames` physics steps with its control held fixed."""
-    return jax.lax.fori_loop(0, n_frames, lambda _, d: mjx.step(model, d), data)
+    """Advances `data` by `n_frames` physics steps with its control held fixed.
+
+    The frames are unrolled: on the GPU every trip of a device loop pauses while the host reads
+    its condition, which at these batch sizes costs more than the physics between the pauses
+    (halfcheetah, batch 10 / 40 on an H200: 1.70 / 1.99 ms per env step in a loop, 1.46 /
+    1.50 ms unrolled).
+    The price is compiling `n_frames` copies of `mjx.step`.
+    """
+    return jax.lax.fori_loop(0, n_frames, lambda _, d: mjx.step(model, d), data, unroll=True)
