@@ -98,7 +98,8 @@ class PGPSConfig:
 
     # --- evaluation (Section 5.1) ---
     eval_every: int = 10_000
-    """Env steps between test evaluations, run inside generation_step in the rollout's batch."""
+    """Env steps between test evaluations (begun inside generation_step, run alongside the
+    population's rollouts)."""
     eval_episodes: int = 10
     """Deterministic test episodes of the CEM mean μ."""
     eval_steps: int = 1000

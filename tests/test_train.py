@@ -4,6 +4,7 @@ re-evaluation, bad inputs (message, non-zero exit, nothing half-written) and a N
 import pathlib
 
 import imageio.v3 as iio
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -193,17 +194,12 @@ def test_resume_by_directory_refuses_other_explicit_settings(reference, cache, t
 def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(
         monkeypatch, tmp_path, capsys):
     """The generation step is wrapped to report a NaN critic loss at generation 3."""
-    real = pgps.make_generation_step
-
     def poisoned(config, env, donate=True):
-        step = real(config, env, donate)
-
-        def wrapped(state):
-            state, metrics = step(state)
-            if int(metrics["gen/generation"]) == 3:
-                metrics = {**metrics, "td3/critic_loss": jnp.float32(jnp.nan)}
-            return state, metrics
-        return wrapped
+        def step(state):
+            state, metrics = pgps.generation_step(config, env, state)
+            loss = jnp.where(metrics["gen/generation"] == 3, jnp.nan, metrics["td3/critic_loss"])
+            return state, {**metrics, "td3/critic_loss": loss}
+        return jax.jit(step, donate_argnums=(0,) if donate else ())
 
     monkeypatch.setattr(pgps, "make_generation_step", poisoned)
     run_dir = tmp_path / "nan"
