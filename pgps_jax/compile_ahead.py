@@ -9,8 +9,6 @@ compile in the background while it trains.
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Callable, Mapping
 
-import jax
-
 
 def compile_ahead(programs: Mapping[str, tuple[Callable, tuple[Any, ...]]]
                   ) -> dict[str, Future]:
@@ -25,8 +23,3 @@ def compile_ahead(programs: Mapping[str, tuple[Callable, tuple[Any, ...]]]
                for name, (fn, args) in programs.items()}
     pool.shutdown(wait=False)
     return futures
-
-
-def abstract(tree) -> Any:
-    """The shapes and dtypes of a pytree of arrays, as `jax.ShapeDtypeStruct`s."""
-    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), tree)

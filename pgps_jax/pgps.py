@@ -201,8 +201,6 @@ def generation_step(config: PGPSConfig, env: Env,
                         valid[:, :num_rollout])
     interaction_steps = episodes.lengths.sum()
     eval_done = ongoing.active & ~jnp.any(eval_episodes.alive)
-    evaluation = evaluation_metrics(eval_episodes.returns)
-    evaluation = {k: jnp.where(eval_done, v, jnp.nan) for k, v in evaluation.items()}
 
     returns = episodes.returns[:n]
     new_cem = cem.tell(state.cem, population, returns, top_k=config.top_k,
@@ -244,9 +242,7 @@ def generation_step(config: PGPSConfig, env: Env,
         "td3/beta": beta,
         **{f"pop/return_{i}": returns[i] for i in range(n)},
         **losses,
-        "eval/done": eval_done,
-        "eval/step": ongoing.step,
-        **evaluation,
+        **_evaluation_report(ongoing, eval_done, eval_episodes.returns),
     }
     return new_state, metrics
 
@@ -276,12 +272,17 @@ def finish_evaluation(config: PGPSConfig, env: Env,
     episodes, _, _ = play(env, _policy(td3, unflatten),
                           jnp.repeat(ongoing.actors, config.eval_episodes, axis=0),
                           ongoing.episodes, config.eval_steps, record=False)
-    done = ongoing.active
-    metrics = {k: jnp.where(done, v, jnp.nan)
-               for k, v in evaluation_metrics(episodes.returns).items()}
     evaluation = ongoing.replace(episodes=episodes, active=jnp.asarray(False))
     return (state.replace(evaluation=evaluation),
-            {"eval/done": done, "eval/step": ongoing.step, **metrics})
+            _evaluation_report(ongoing, ongoing.active, episodes.returns))
+
+
+def _evaluation_report(evaluation: EvaluationState, done: jax.Array,
+                       returns: jax.Array) -> dict:
+    """`eval/done`, `eval/step` (when the evaluation began) and the `evaluation_metrics` of
+    its test returns, NaN unless `done`."""
+    metrics = {k: jnp.where(done, v, jnp.nan) for k, v in evaluation_metrics(returns).items()}
+    return {"eval/done": done, "eval/step": evaluation.step, **metrics}
 
 
 def evaluation_batch(actors: jax.Array, key: jax.Array,
