@@ -5,6 +5,7 @@ An env step is `n_frames` calls of `mjx.step`, with the control held fixed (Gym'
 """
 
 import dataclasses
+import functools
 
 import brax
 from etils import epath
@@ -12,6 +13,8 @@ import jax
 import mujoco
 from mujoco import mjx
 import numpy as np
+
+from pgps_jax.envs.small_linalg import write_out_small_linalg
 
 _ASSETS = epath.resource_path(brax.__name__) / "envs/assets"
 _SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
@@ -69,8 +72,13 @@ def init_qpos(model: mujoco.MjModel) -> np.ndarray:
     return np.array(model.qpos0)
 
 
-def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int) -> mjx.Data:
+def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
+                write_out_linalg: bool | None = None) -> mjx.Data:
     """Advances `data` by `n_frames` physics steps with its control held fixed.
+
+    `write_out_linalg` (default: on a GPU) replaces MJX's batched cuSOLVER / cuBLAS calls for
+    the small mass-matrix and Newton-Hessian factorisations by fused array code
+    (`small_linalg`): halfcheetah XXX.
 
     The frames are unrolled: on the GPU every trip of a device loop pauses while the host reads
     its condition, which at these batch sizes costs more than the physics between the pauses
@@ -78,4 +86,9 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int) -> mjx.Data:
     1.50 ms unrolled).
     The price is compiling `n_frames` copies of `mjx.step`.
     """
-    return jax.lax.fori_loop(0, n_frames, lambda _, d: mjx.step(model, d), data, unroll=True)
+    if write_out_linalg is None:
+        write_out_linalg = jax.default_backend() == "gpu"
+    step = functools.partial(mjx.step, model)
+    if write_out_linalg:
+        step = write_out_small_linalg(step)
+    return jax.lax.fori_loop(0, n_frames, lambda _, d: step(d), data, unroll=True)

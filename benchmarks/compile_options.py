@@ -1,0 +1,89 @@
+"""XLA compile options: compile time of a run's programs and the speed of what they compile.
+
+halfcheetah, paper configuration. For each set of `XLA_FLAGS`, in a fresh process: `init` and
+`generation_step` compiled side by side as the CLI does (seconds until each is ready), then
+`init` run and generations timed from its state (median of 3 after one untimed; T = 400, the
+first generations' episode limit, before Q-filtering starts).
+
+    python benchmarks/compile_options.py [--variants ...] [--out FILE] [--smoke]
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+VARIANTS = {
+    "default": "",
+    "autotune_off": "--xla_gpu_autotune_level=0",
+    "parallel_llvm": ("--xla_gpu_enable_llvm_module_compilation_parallelism=true "
+                      "--xla_gpu_force_compilation_parallelism=16"),
+    "autotune_off+parallel_llvm": ("--xla_gpu_autotune_level=0 "
+                                   "--xla_gpu_enable_llvm_module_compilation_parallelism=true "
+                                   "--xla_gpu_force_compilation_parallelism=16"),
+}
+
+
+def child(smoke: bool) -> dict:
+    """Compile and time in this process, under the XLA_FLAGS it was started with."""
+    import jax
+
+    from pgps_jax import pgps
+    from pgps_jax.compile_ahead import compile_ahead
+    from pgps_jax.config import for_task
+    from pgps_jax.envs import make_env
+
+    config = for_task("halfcheetah")
+    if smoke:
+        config = for_task("halfcheetah", t_init=10, t_max=20, buffer_size=5000,
+                          warmup_steps=200, actor_hidden=(16, 16), critic_hidden=(16, 16),
+                          eval_steps=20, sample_ratio=2)
+    env = make_env("halfcheetah")
+    keys = (jax.random.PRNGKey(0), jax.random.PRNGKey(100))
+    abstract = jax.eval_shape(lambda k, e: pgps.init(config, env, k, e), *keys)
+    start = time.perf_counter()
+    futures = compile_ahead({"init": (pgps.make_init(config, env), keys),
+                             "step": (pgps.make_generation_step(config, env), (abstract,))})
+    step = futures["step"].result()
+    step_s = time.perf_counter() - start
+    init = futures["init"].result()
+    both_s = time.perf_counter() - start
+    state = init(*keys)
+    state, _ = step(state)
+    times = []
+    for _ in range(3):
+        t = time.perf_counter()
+        state, metrics = step(state)
+        jax.block_until_ready(metrics)
+        times.append(time.perf_counter() - t)
+    return {"generation_step_compile_s": step_s, "init_and_step_compile_s": both_s,
+            "generation_ms": sorted(times)[1] * 1e3,
+            "episode_limit": int(metrics["gen/episode_limit"])}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument("--out", default="benchmarks/results/compile_options.json")
+    parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        print(json.dumps(child(args.smoke)))
+        return
+    import jax
+    out = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "variants": {}}
+    for name in args.variants:
+        env = {**os.environ, "XLA_FLAGS": VARIANTS[name]}
+        command = [sys.executable, __file__, "--child"] + (["--smoke"] if args.smoke else [])
+        result = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
+        row = {"xla_flags": VARIANTS[name], **json.loads(result.stdout.strip().splitlines()[-1])}
+        out["variants"][name] = row
+        print(name, json.dumps(row), flush=True)
+    json.dump(out, open(args.out, "w"), indent=1)
+
+
+if __name__ == "__main__":
+    main()
