@@ -260,8 +260,9 @@ def full_run(task: str, seeds: int) -> dict:
     step_compile_s = time.perf_counter() - start
     init = compiled["init"].result()
     compile_s = time.perf_counter() - start      # init and step compiled, side by side
-    state = init(keys, eval_keys)
-    curve, generations = [], 0
+    state = jax.block_until_ready(init(keys, eval_keys))
+    init_run_s = time.perf_counter() - start - compile_s
+    curve, generations, per_generation = [], 0, []
 
     def record(metrics):
         done, step_at, mu = jax.device_get((metrics["eval/done"], metrics["eval/step"],
@@ -270,18 +271,27 @@ def full_run(task: str, seeds: int) -> dict:
             curve.append((np.asarray(step_at).tolist(), np.asarray(mu).tolist()))
 
     while int(np.min(jax.device_get(state.total_steps))) < TOTAL_STEPS:
+        t = time.perf_counter()
         state, metrics = step(state)
         generations += 1
-        record(metrics)
+        record(metrics)             # waits for the generation's metrics
+        limit, steps = jax.device_get((metrics["gen/episode_limit"],
+                                       metrics["gen/interaction_steps"]))
+        per_generation.append([time.perf_counter() - t, np.asarray(limit).max().tolist(),
+                               np.asarray(steps).max().tolist()])
+    end = time.perf_counter()
     if np.any(jax.device_get(state.evaluation.active)):
         state, metrics = compiled["finish"].result()(state)
         record(metrics)
     final = np.asarray(compiled["evaluate"].result()(state)["eval/mu_mean"]).tolist()
     wall = time.perf_counter() - start
+    end_s = time.perf_counter() - end
     return {"task": task, "seeds": seeds, "wall_s_including_compile": wall,
             "compile_s": compile_s, "generation_step_compile_s": step_compile_s,
-            "generations": generations, "evaluations": len(curve) + 1,
-            "final_eval_mu_mean": final, "eval_curve_every_10th": curve[::10]}
+            "init_run_s": init_run_s, "generations_s": sum(g[0] for g in per_generation),
+            "end_s": end_s, "generations": generations, "evaluations": len(curve) + 1,
+            "final_eval_mu_mean": final, "eval_curve_every_10th": curve[::10],
+            "per_generation_s_limit_steps": per_generation}
 
 
 def main():
