@@ -78,8 +78,12 @@ def main():
     for name in args.variants:
         env = {**os.environ, "XLA_FLAGS": VARIANTS[name]}
         command = [sys.executable, __file__, "--child"] + (["--smoke"] if args.smoke else [])
-        result = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
-        row = {"xla_flags": VARIANTS[name], **json.loads(result.stdout.strip().splitlines()[-1])}
+        result = subprocess.run(command, env=env, capture_output=True, text=True)
+        row = {"xla_flags": VARIANTS[name]}
+        if result.returncode == 0:
+            row.update(json.loads(result.stdout.strip().splitlines()[-1]))
+        else:
+            row["error"] = result.stderr.strip().splitlines()[-3:]
         out["variants"][name] = row
         print(name, json.dumps(row), flush=True)
     json.dump(out, open(args.out, "w"), indent=1)

@@ -254,8 +254,10 @@ def full_run(task: str, seeds: int) -> dict:
             "evaluate": jax.jit(jax.vmap(bind(pgps.evaluate, config, env)))}
         abstract = jax.eval_shape(jax.vmap(bind(pgps.init, config, env)), keys, eval_keys)
     start = time.perf_counter()
-    compiled = compile_ahead({name: (fn, (keys, eval_keys) if name == "init" else (abstract,))
-                              for name, fn in programs.items()})
+    args = {name: (keys, eval_keys) if name == "init" else (abstract,) for name in programs}
+    compiled = compile_ahead(
+        {name: (programs[name], args[name]) for name in ("init", "step")},
+        later={name: (programs[name], args[name]) for name in ("finish", "evaluate")})
     step = compiled["step"].result()
     step_compile_s = time.perf_counter() - start
     init = compiled["init"].result()

@@ -9,7 +9,7 @@ count, by the generation in which its episodes end. After the last generation an
 still under way is played to its end and the final state is evaluated with `pgps.evaluate`.
 Checkpoints are written every `checkpoint_every` generations, at the end and on SIGINT /
 SIGTERM. The programs compile ahead of time side by side (`compile_ahead`): `init` with
-`generation_step`, and the two end-of-run programs in the background while the run trains.
+`generation_step`, then the two end-of-run programs in the background while the run trains.
 Nothing here runs inside jit. The run directory's contents are listed in `pgps_jax.run_dir`.
 """
 
@@ -126,12 +126,12 @@ class Trainer:
         abstract = jax.eval_shape(functools.partial(pgps.init, self.config, self.env),
                                   seed_key, eval_key)
         c, env = self.config, self.env
-        programs = {"generation_step": (pgps.make_generation_step(c, env), (abstract,)),
-                    "finish_evaluation": (pgps.make_finish_evaluation(c, env), (abstract,)),
-                    "evaluate": (pgps.make_evaluate(c, env), (abstract,))}
+        programs = {"generation_step": (pgps.make_generation_step(c, env), (abstract,))}
         if self.p.resume_step is None:
             programs["init"] = (pgps.make_init(c, env), (seed_key, eval_key))
-        self.programs = compile_ahead(programs)
+        self.programs = compile_ahead(programs, later={
+            "finish_evaluation": (pgps.make_finish_evaluation(c, env), (abstract,)),
+            "evaluate": (pgps.make_evaluate(c, env), (abstract,))})
         if self.p.resume_step is None:
             for log in self.logs.values():
                 log.start()

@@ -17,6 +17,7 @@ import jax
 from jax.extend import core
 import jax.numpy as jnp
 from jax.lax import linalg
+import numpy as np
 
 MAX_SIZE = 10
 """Largest matrix written out. On an H200 (`benchmarks/linalg_lowering.py`) the written-out
@@ -27,8 +28,8 @@ at ant's nv = 14 they gain nothing and compile 2.7× longer, so ant keeps the li
 def cholesky(a: jax.Array) -> jax.Array:
     """Lower Cholesky factor L, A = L Lᵀ, of a batch [..., n, n] of symmetric matrices.
 
-    Reads the lower triangle, like LAPACK's potrf. As JAX's `cholesky` does, a matrix that is
-    not positive definite (a pivot ≤ 0 or non-finite) gives a factor of NaNs.
+    Reads the lower triangle, like LAPACK's potrf. As with JAX's `cholesky`, a matrix that is
+    not positive definite (a pivot ≤ 0 or non-finite) gives NaNs in the lower triangle.
     """
     n = a.shape[-1]
     entry = [[a[..., i, j] for j in range(n)] for i in range(n)]
@@ -46,7 +47,7 @@ def cholesky(a: jax.Array) -> jax.Array:
     rows = [jnp.stack([factor[i][j] if j <= i else zero for j in range(n)], -1)
             for i in range(n)]
     lower = jnp.stack(rows, -2)
-    return jnp.where(positive[..., None, None], lower, jnp.nan)
+    return jnp.where(positive[..., None, None] | ~np.tri(n, dtype=bool), lower, jnp.nan)
 
 
 def triangular_solve(a: jax.Array, b: jax.Array, *, left_side: bool, lower: bool,
