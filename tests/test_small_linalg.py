@@ -95,21 +95,30 @@ def test_large_matrices_keep_the_library_calls():
     assert "cholesky" in _primitives(jax.make_jaxpr(written)(jnp.asarray(_spd(n)[0])))
 
 
-@pytest.mark.parametrize("task,written", [("halfcheetah", True), ("ant", False)])
-def test_physics_step_written_out_matches_library(task, written):
-    """Same env step, to float32 rounding; halfcheetah (nv 9) is written out, ant (14) not."""
-    env = make_env(task)
+def _physics_step(env, write_out_linalg):
+    return jax.vmap(functools.partial(physics.step_frames, env.mjx_model, n_frames=1,
+                                      write_out_linalg=write_out_linalg))
+
+
+def test_physics_step_written_out_matches_library():
+    """halfcheetah (nv 9): the same physics step, to float32 rounding, without the library."""
+    env = make_env("halfcheetah")
     state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 3))
     data = state.pipeline_state.replace(ctrl=jnp.full((3, env.action_size), 0.5))
-    steps = {flag: jax.vmap(functools.partial(physics.step_frames, env.mjx_model,
-                                              n_frames=env.n_frames, write_out_linalg=flag))
-             for flag in (False, True)}
-    primitives = _primitives(jax.make_jaxpr(steps[True])(data))
-    assert ("cholesky" not in primitives) == written
-    library, written_out = jax.jit(steps[False])(data), jax.jit(steps[True])(data)
-    for field in ("qpos", "qvel"):
+    written = _physics_step(env, True)
+    assert not {"cholesky", "triangular_solve"} & _primitives(jax.make_jaxpr(written)(data))
+    library, written_out = jax.jit(_physics_step(env, False))(data), jax.jit(written)(data)
+    for field in ("qpos", "qvel", "qacc"):
         np.testing.assert_allclose(getattr(written_out, field), getattr(library, field),
                                    rtol=1e-4, atol=1e-4)
+
+
+def test_ant_keeps_the_library_calls():
+    """ant's nv = 14 is above MAX_SIZE."""
+    env = make_env("ant")
+    data = jax.vmap(lambda _: mjx.make_data(env.mjx_model))(jnp.arange(2))
+    assert env.mjx_model.nv > small_linalg.MAX_SIZE
+    assert "cholesky" in _primitives(jax.make_jaxpr(_physics_step(env, True))(data))
 
 
 def test_cpu_default_keeps_the_library_calls():
