@@ -36,7 +36,8 @@ def cholesky(a: jax.Array) -> jax.Array:
     factor = [[None] * n for _ in range(n)]
     positive = jnp.ones(a.shape[:-2], bool)
     for j in range(n):
-        pivot = entry[j][j] - sum((factor[j][k] ** 2 for k in range(j)), jnp.zeros_like(entry[j][j]))
+        squares = sum((factor[j][k] ** 2 for k in range(j)), jnp.zeros_like(entry[j][j]))
+        pivot = entry[j][j] - squares
         positive &= pivot > 0
         diagonal = jnp.sqrt(pivot)
         factor[j][j] = diagonal
@@ -101,7 +102,7 @@ def _is_target(eqn) -> bool:
             and not jnp.issubdtype(eqn.invars[0].aval.dtype, jnp.complexfloating))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.lru_cache(maxsize=1024)
 def _has_target(jaxpr: core.Jaxpr) -> bool:
     return any(_is_target(eqn) or any(_has_target(sub) for sub in core.jaxprs_in_params(eqn.params))
                for eqn in jaxpr.eqns)
