@@ -15,31 +15,28 @@ import subprocess
 import sys
 import time
 
+_AUTOTUNE_OFF = "--xla_gpu_autotune_level=0"
+_PARALLEL_LLVM = ("--xla_gpu_enable_llvm_module_compilation_parallelism=true "
+                  "--xla_gpu_force_compilation_parallelism=16")
 VARIANTS = {
     "default": "",
-    "autotune_off": "--xla_gpu_autotune_level=0",
-    "parallel_llvm": ("--xla_gpu_enable_llvm_module_compilation_parallelism=true "
-                      "--xla_gpu_force_compilation_parallelism=16"),
-    "autotune_off+parallel_llvm": ("--xla_gpu_autotune_level=0 "
-                                   "--xla_gpu_enable_llvm_module_compilation_parallelism=true "
-                                   "--xla_gpu_force_compilation_parallelism=16"),
+    "autotune_off": _AUTOTUNE_OFF,
+    "parallel_llvm": _PARALLEL_LLVM,
+    "autotune_off+parallel_llvm": f"{_AUTOTUNE_OFF} {_PARALLEL_LLVM}",
 }
 
 
-def child(smoke: bool) -> dict:
+def child() -> dict:
     """Compile and time in this process, under the XLA_FLAGS it was started with."""
     import jax
 
     from pgps_jax import pgps
     from pgps_jax.compile_ahead import compile_ahead
-    from pgps_jax.config import for_task
     from pgps_jax.envs import make_env
+    sys.path.insert(0, os.path.dirname(__file__))
+    from throughput import bench_config  # sibling benchmark; reads --smoke itself
 
-    config = for_task("halfcheetah")
-    if smoke:
-        config = for_task("halfcheetah", t_init=10, t_max=20, buffer_size=5000,
-                          warmup_steps=200, actor_hidden=(16, 16), critic_hidden=(16, 16),
-                          eval_steps=20, sample_ratio=2)
+    config = bench_config("halfcheetah")
     env = make_env("halfcheetah")
     keys = (jax.random.PRNGKey(0), jax.random.PRNGKey(100))
     abstract = jax.eval_shape(lambda k, e: pgps.init(config, env, k, e), *keys)
@@ -71,7 +68,7 @@ def main():
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        print(json.dumps(child(args.smoke)))
+        print(json.dumps(child()))
         return
     import jax
     out = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "variants": {}}

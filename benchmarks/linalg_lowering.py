@@ -44,12 +44,12 @@ def scan_steps(model, n_frames, n_steps, write_out_linalg):
     return jax.jit(run)
 
 
-def variant_model(task, variant):
+def variant_model(task, variant) -> mjx.Model:
     env = make_env(task, solver="cg") if variant == "cg" else make_env(task)
     if variant == "sparse":
         env.mj_model.opt.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE
-        return env, mjx.put_model(env.mj_model)
-    return env, env.mjx_model
+        return mjx.put_model(env.mj_model)
+    return env.mjx_model
 
 
 def task_row(task, variants, steps, repeats):
@@ -58,7 +58,7 @@ def task_row(task, variants, steps, repeats):
     warm = scan_steps(env.mjx_model, env.n_frames, WARMUP, False)(data, jax.random.PRNGKey(3))
     starts, programs = {}, {}
     for variant in variants:
-        _, model = variant_model(task, variant)
+        model = variant_model(task, variant)
         start = jax.vmap(lambda q, v: mjx.make_data(model).replace(qpos=q, qvel=v))(
             warm.qpos, warm.qvel)
         starts[variant] = start

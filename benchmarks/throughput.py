@@ -266,19 +266,19 @@ def full_run(task: str, seeds: int) -> dict:
     init_run_s = time.perf_counter() - start - compile_s
     curve, generations, per_generation = [], 0, []
 
-    def record(metrics):
-        done, step_at, mu = jax.device_get((metrics["eval/done"], metrics["eval/step"],
-                                            metrics["eval/mu_mean"]))
+    def record(metrics, *extra):
+        """Adds an evaluation that ended to the curve; returns the `extra` metrics (host)."""
+        done, step_at, mu, *values = jax.device_get(
+            [metrics[k] for k in ("eval/done", "eval/step", "eval/mu_mean", *extra)])
         if np.any(done):
             curve.append((np.asarray(step_at).tolist(), np.asarray(mu).tolist()))
+        return values
 
     while int(np.min(jax.device_get(state.total_steps))) < TOTAL_STEPS:
         t = time.perf_counter()
         state, metrics = step(state)
         generations += 1
-        record(metrics)             # waits for the generation's metrics
-        limit, steps = jax.device_get((metrics["gen/episode_limit"],
-                                       metrics["gen/interaction_steps"]))
+        limit, steps = record(metrics, "gen/episode_limit", "gen/interaction_steps")
         per_generation.append([time.perf_counter() - t, np.asarray(limit).max().tolist(),
                                np.asarray(steps).max().tolist()])
     end = time.perf_counter()
