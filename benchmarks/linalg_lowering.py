@@ -5,32 +5,83 @@ For each task: `physics.step_frames` (an env step's `n_frames` MJX steps) vmappe
 states warmed up by 200 such steps. Variants:
 - `library`: JAX's GPU lowering of `cho_factor` / `cho_solve` (batched cuSOLVER potrf,
   cuBLAS trsm), `write_out_linalg=False`;
-- `written_out`: `small_linalg`'s fused versions (`write_out_linalg=True`, the GPU default);
+- `written_out`: `small_linalg`'s fused versions (`write_out_linalg=True`, the GPU default),
+  one vector expression per column;
+- `written_out_entries`: the same rewrite with one expression per matrix entry (the previous
+  version of `small_linalg`, kept here for comparison);
 - `sparse`: MuJoCo's sparse mass matrix with the library calls (MJX factorises it with
   gathers and scatters; the Newton Hessian still goes to cuSOLVER);
 - `cg`: the CG solver with the library calls (other physics: a reference only).
-Milliseconds per env step (median of 5 calls of 100 steps), compile seconds (the variants of a
-task compile side by side), and the largest |Δqpos|, |Δqvel| of `written_out` against
+Milliseconds per env step (median of 5 calls of 100 steps), compile seconds (each variant
+compiled on its own, one after the other), and the largest |Δqpos|, |Δqvel| of `written_out` against
 `library` after one env step from the same states.
 
     python benchmarks/linalg_lowering.py [--tasks ...] [--variants ...] [--out FILE] [--smoke]
 """
 
 import argparse
+import contextlib
 import functools
 import json
 import time
+from unittest import mock
 
 import jax
+import jax.numpy as jnp
 import mujoco
 from mujoco import mjx
 import numpy as np
 
-from pgps_jax.compile_ahead import compile_ahead
-from pgps_jax.envs import TASKS, make_env, physics
+from pgps_jax.envs import TASKS, make_env, physics, small_linalg
 
 BATCH, WARMUP, STEPS, REPEATS = 40, 200, 100, 5
-VARIANTS = ("library", "written_out", "sparse", "cg")
+VARIANTS = ("library", "written_out", "written_out_entries", "sparse", "cg")
+
+
+def cholesky_entries(a):
+    """Lower Cholesky factor, one expression per entry (NaN handling as `small_linalg`)."""
+    n = a.shape[-1]
+    factor = [[None] * n for _ in range(n)]
+    positive = jnp.ones(a.shape[:-2], bool)
+    for j in range(n):
+        pivot = a[..., j, j] - sum((factor[j][k] ** 2 for k in range(j)), 0.0)
+        positive &= pivot > 0
+        factor[j][j] = jnp.sqrt(pivot)
+        for i in range(j + 1, n):
+            dot = sum((factor[i][k] * factor[j][k] for k in range(j)), 0.0)
+            factor[i][j] = (a[..., i, j] - dot) / factor[j][j]
+    zero = jnp.zeros(a.shape[:-2], a.dtype)
+    lower = jnp.stack([jnp.stack([factor[i][j] if j <= i else zero for j in range(n)], -1)
+                       for i in range(n)], -2)
+    return jnp.where(positive[..., None, None] | ~np.tri(n, dtype=bool), lower, jnp.nan)
+
+
+def triangular_solve_entries(a, b, *, left_side, lower, transpose_a, conjugate_a,
+                             unit_diagonal):
+    """`small_linalg.triangular_solve` by rows, one expression per row and term."""
+    if not left_side:
+        solution = triangular_solve_entries(a, jnp.swapaxes(b, -1, -2), left_side=True,
+                                            lower=lower, transpose_a=not transpose_a,
+                                            conjugate_a=conjugate_a, unit_diagonal=unit_diagonal)
+        return jnp.swapaxes(solution, -1, -2)
+    n = a.shape[-1]
+    m = (lambda i, j: a[..., j, i]) if transpose_a else (lambda i, j: a[..., i, j])
+    order = range(n) if lower != transpose_a else range(n - 1, -1, -1)
+    solution, done = [None] * n, []
+    for i in order:
+        residual = b[..., i, :] - sum((m(i, j)[..., None] * solution[j] for j in done), 0.0)
+        solution[i] = residual if unit_diagonal else residual / m(i, i)[..., None]
+        done.append(i)
+    return jnp.stack(solution, -2)
+
+
+def forms(variant):
+    """Context in which `small_linalg` writes out `variant`'s forms."""
+    if variant != "written_out_entries":
+        return contextlib.nullcontext()
+    return mock.patch.dict(small_linalg._WRITTEN_OUT, {
+        jax.lax.linalg.cholesky_p: cholesky_entries,
+        jax.lax.linalg.triangular_solve_p: triangular_solve_entries})
 
 
 def scan_steps(model, n_frames, n_steps, write_out_linalg):
@@ -56,23 +107,20 @@ def task_row(task, variants, steps, repeats):
     env = make_env(task)
     data = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), BATCH)).pipeline_state
     warm = scan_steps(env.mjx_model, env.n_frames, WARMUP, False)(data, jax.random.PRNGKey(3))
-    starts, programs = {}, {}
+    starts, compiled, compile_s, one_step = {}, {}, {}, {}
     for variant in variants:
         model = variant_model(task, variant)
         start = jax.vmap(lambda q, v: mjx.make_data(model).replace(qpos=q, qvel=v))(
             warm.qpos, warm.qvel)
         starts[variant] = start
-        programs[variant] = (scan_steps(model, env.n_frames, steps, variant == "written_out"),
-                             (start, jax.random.PRNGKey(1)))
-        programs[variant + "/one"] = (scan_steps(model, env.n_frames, 1,
-                                                 variant == "written_out"),
-                                      (start, jax.random.PRNGKey(2)))
-    t = time.perf_counter()
-    futures = compile_ahead(programs)
-    compiled, compile_s = {}, {}
-    for name, future in futures.items():
-        compiled[name] = future.result()
-        compile_s[name] = time.perf_counter() - t
+        written_out = variant.startswith("written_out")
+        with forms(variant):
+            t = time.perf_counter()
+            compiled[variant] = scan_steps(model, env.n_frames, steps, written_out).lower(
+                start, jax.random.PRNGKey(1)).compile()
+            compile_s[variant] = time.perf_counter() - t
+            one_step[variant] = scan_steps(model, env.n_frames, 1, written_out).lower(
+                start, jax.random.PRNGKey(2)).compile()
     row = {}
     for variant in variants:
         fn, start, key = compiled[variant], starts[variant], jax.random.PRNGKey(1)
@@ -83,13 +131,14 @@ def task_row(task, variants, steps, repeats):
             jax.block_until_ready(fn(start, key))
             times.append(time.perf_counter() - t)
         row[variant] = {"ms_per_step": float(np.median(times)) / steps * 1e3,
-                        "compile_s_side_by_side": compile_s[variant]}
-    if {"library", "written_out"} <= set(variants):
-        a, b = (compiled[v + "/one"](starts[v], jax.random.PRNGKey(2))
-                for v in ("library", "written_out"))
-        row["written_out"]["max_abs_diff_after_one_step"] = float(max(
-            np.abs(np.asarray(a.qpos) - np.asarray(b.qpos)).max(),
-            np.abs(np.asarray(a.qvel) - np.asarray(b.qvel)).max()))
+                        "compile_s": compile_s[variant]}
+    if "library" in variants:
+        reference = one_step["library"](starts["library"], jax.random.PRNGKey(2))
+        for variant in (v for v in variants if v.startswith("written_out")):
+            result = one_step[variant](starts[variant], jax.random.PRNGKey(2))
+            row[variant]["max_abs_diff_after_one_step"] = float(max(
+                np.abs(np.asarray(reference.qpos) - np.asarray(result.qpos)).max(),
+                np.abs(np.asarray(reference.qvel) - np.asarray(result.qvel)).max()))
     return row
 
 

@@ -60,12 +60,15 @@ def test_cholesky_of_an_indefinite_matrix_is_nan_like_jax():
 @pytest.mark.parametrize("left_side,lower,transpose_a,unit_diagonal",
                          list(itertools.product([True, False], repeat=4)))
 def test_triangular_solve_solves_op_a(left_side, lower, transpose_a, unit_diagonal):
+    """Every variant solves op(A) X = B or X op(A) = B, ignoring A's other triangle."""
     n, k = 6, 3
     factor = np.linalg.cholesky(_spd(n).astype(np.float64))
     a = factor if lower else np.swapaxes(factor, -1, -2)
     b = RNG.normal(size=(5, n, k) if left_side else (5, k, n))
+    noise = RNG.normal(size=a.shape)
+    other_triangle = np.triu(noise, 1) if lower else np.tril(noise, -1)
     x = np.asarray(small_linalg.triangular_solve(
-        jnp.asarray(a, jnp.float32), jnp.asarray(b, jnp.float32), left_side=left_side,
+        jnp.asarray(a + other_triangle, jnp.float32), jnp.asarray(b, jnp.float32), left_side=left_side,
         lower=lower, transpose_a=transpose_a, conjugate_a=False, unit_diagonal=unit_diagonal))
     used = np.tril(a) if lower else np.triu(a)
     if unit_diagonal:
