@@ -6,9 +6,9 @@ states warmed up by 200 such steps. Variants:
 - `library`: JAX's GPU lowering of `cho_factor` / `cho_solve` (batched cuSOLVER potrf,
   cuBLAS trsm), `write_out_linalg=False`;
 - `written_out`: `small_linalg`'s fused versions (`write_out_linalg=True`, the GPU default),
-  one vector expression per column;
-- `written_out_entries`: the same rewrite with one expression per matrix entry (the previous
-  version of `small_linalg`, kept here for comparison);
+  one expression per matrix entry;
+- `written_out_columns`: the same rewrite with one vector expression per column (fewer
+  operations to compile; on an H200 it compiled 16 % faster but stepped 15 % slower);
 - `sparse`: MuJoCo's sparse mass matrix with the library calls (MJX factorises it with
   gathers and scatters; the Newton Hessian still goes to cuSOLVER);
 - `cg`: the CG solver with the library calls (other physics: a reference only).
@@ -35,53 +35,56 @@ import numpy as np
 from pgps_jax.envs import TASKS, make_env, physics, small_linalg
 
 BATCH, WARMUP, STEPS, REPEATS = 40, 200, 100, 5
-VARIANTS = ("library", "written_out", "written_out_entries", "sparse", "cg")
+VARIANTS = ("library", "written_out", "written_out_columns", "sparse", "cg")
 
 
-def cholesky_entries(a):
-    """Lower Cholesky factor, one expression per entry (NaN handling as `small_linalg`)."""
+def cholesky_columns(a):
+    """Lower Cholesky factor, one vector expression per column (NaN handling as
+    `small_linalg`): L[:, j] = (A[:, j] − L[:, :j] L[j, :j]ᵀ) / L[j, j] below the diagonal."""
     n = a.shape[-1]
-    factor = [[None] * n for _ in range(n)]
+    rows, columns = np.arange(n), []
     positive = jnp.ones(a.shape[:-2], bool)
     for j in range(n):
-        pivot = a[..., j, j] - sum((factor[j][k] ** 2 for k in range(j)), 0.0)
+        column = a[..., :, j]
+        if columns:
+            done = jnp.stack(columns, -1)
+            column = column - jnp.sum(done * done[..., j:j + 1, :], -1)
+        pivot = column[..., j]
         positive &= pivot > 0
-        factor[j][j] = jnp.sqrt(pivot)
-        for i in range(j + 1, n):
-            dot = sum((factor[i][k] * factor[j][k] for k in range(j)), 0.0)
-            factor[i][j] = (a[..., i, j] - dot) / factor[j][j]
-    zero = jnp.zeros(a.shape[:-2], a.dtype)
-    lower = jnp.stack([jnp.stack([factor[i][j] if j <= i else zero for j in range(n)], -1)
-                       for i in range(n)], -2)
+        columns.append(jnp.where(rows >= j, column / jnp.sqrt(pivot)[..., None], 0.0))
+    lower = jnp.stack(columns, -1)
     return jnp.where(positive[..., None, None] | ~np.tri(n, dtype=bool), lower, jnp.nan)
 
 
-def triangular_solve_entries(a, b, *, left_side, lower, transpose_a, conjugate_a,
+def triangular_solve_columns(a, b, *, left_side, lower, transpose_a, conjugate_a,
                              unit_diagonal):
-    """`small_linalg.triangular_solve` by rows, one expression per row and term."""
+    """`small_linalg.triangular_solve` by columns: each solved row x_i is removed from the rows
+    still to solve, B ← B − op(A)[:, i] x_i, one vector expression per row."""
     if not left_side:
-        solution = triangular_solve_entries(a, jnp.swapaxes(b, -1, -2), left_side=True,
+        solution = triangular_solve_columns(a, jnp.swapaxes(b, -1, -2), left_side=True,
                                             lower=lower, transpose_a=not transpose_a,
                                             conjugate_a=conjugate_a, unit_diagonal=unit_diagonal)
         return jnp.swapaxes(solution, -1, -2)
     n = a.shape[-1]
-    m = (lambda i, j: a[..., j, i]) if transpose_a else (lambda i, j: a[..., i, j])
-    order = range(n) if lower != transpose_a else range(n - 1, -1, -1)
-    solution, done = [None] * n, []
-    for i in order:
-        residual = b[..., i, :] - sum((m(i, j)[..., None] * solution[j] for j in done), 0.0)
-        solution[i] = residual if unit_diagonal else residual / m(i, i)[..., None]
-        done.append(i)
+    order = list(range(n)) if lower != transpose_a else list(range(n - 1, -1, -1))
+    residual, solution = b, [None] * n
+    for step, i in enumerate(order):
+        row = residual[..., i, :]
+        solution[i] = row if unit_diagonal else row / a[..., i, i, None]
+        to_solve = np.isin(np.arange(n), order[step + 1:])
+        if to_solve.any():
+            column = jnp.where(to_solve, a[..., i, :] if transpose_a else a[..., :, i], 0.0)
+            residual = residual - column[..., :, None] * solution[i][..., None, :]
     return jnp.stack(solution, -2)
 
 
 def forms(variant):
     """Context in which `small_linalg` writes out `variant`'s forms."""
-    if variant != "written_out_entries":
+    if variant != "written_out_columns":
         return contextlib.nullcontext()
     return mock.patch.dict(small_linalg._WRITTEN_OUT, {
-        jax.lax.linalg.cholesky_p: cholesky_entries,
-        jax.lax.linalg.triangular_solve_p: triangular_solve_entries})
+        jax.lax.linalg.cholesky_p: cholesky_columns,
+        jax.lax.linalg.triangular_solve_p: triangular_solve_columns})
 
 
 def scan_steps(model, n_frames, n_steps, write_out_linalg):

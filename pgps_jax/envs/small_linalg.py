@@ -8,8 +8,7 @@ batch that XLA fuses with its neighbours.
 
 `write_out_small_linalg(fn)` traces `fn` and replaces each Cholesky and triangular-solve
 primitive on matrices up to `MAX_SIZE` rows, in `fn` and in the loops and jitted functions it
-calls, by these versions; everything else is bound as traced. Each is written one vector
-expression per column (not per entry), which XLA compiles in less time.
+calls, by these versions; everything else is bound as traced.
 """
 
 import functools
@@ -29,24 +28,26 @@ at ant's nv = 14 they gain nothing and compile 2.7× longer, so ant keeps the li
 def cholesky(a: jax.Array) -> jax.Array:
     """Lower Cholesky factor L, A = L Lᵀ, of a batch [..., n, n] of symmetric matrices.
 
-    Column by column (left-looking): L[:, j] = (A[:, j] − L[:, :j] L[j, :j]ᵀ) / L[j, j] below
-    the diagonal, one vector expression per column. Reads the lower triangle, like LAPACK's
-    potrf. As with JAX's `cholesky`, a matrix that is not positive definite (a pivot ≤ 0 or
-    non-finite) gives NaNs in the lower triangle.
+    Reads the lower triangle, like LAPACK's potrf. As with JAX's `cholesky`, a matrix that is
+    not positive definite (a pivot ≤ 0 or non-finite) gives NaNs in the lower triangle.
     """
     n = a.shape[-1]
-    rows = np.arange(n)
-    columns = []
+    entry = [[a[..., i, j] for j in range(n)] for i in range(n)]
+    factor = [[None] * n for _ in range(n)]
     positive = jnp.ones(a.shape[:-2], bool)
     for j in range(n):
-        column = a[..., :, j]
-        if columns:
-            done = jnp.stack(columns, -1)                       # L[:, :j]
-            column = column - jnp.sum(done * done[..., j:j + 1, :], -1)
-        pivot = column[..., j]
+        squares = sum((factor[j][k] ** 2 for k in range(j)), jnp.zeros_like(entry[j][j]))
+        pivot = entry[j][j] - squares
         positive &= pivot > 0
-        columns.append(jnp.where(rows >= j, column / jnp.sqrt(pivot)[..., None], 0.0))
-    lower = jnp.stack(columns, -1)
+        diagonal = jnp.sqrt(pivot)
+        factor[j][j] = diagonal
+        for i in range(j + 1, n):
+            dot = sum((factor[i][k] * factor[j][k] for k in range(j)), jnp.zeros_like(diagonal))
+            factor[i][j] = (entry[i][j] - dot) / diagonal
+    zero = jnp.zeros_like(entry[0][0])
+    rows = [jnp.stack([factor[i][j] if j <= i else zero for j in range(n)], -1)
+            for i in range(n)]
+    lower = jnp.stack(rows, -2)
     return jnp.where(positive[..., None, None] | ~np.tri(n, dtype=bool), lower, jnp.nan)
 
 
@@ -55,9 +56,7 @@ def triangular_solve(a: jax.Array, b: jax.Array, *, left_side: bool, lower: bool
     """X with op(A) X = B (`left_side`) or X op(A) = B, for triangular A [..., n, n].
 
     op(A) = Aᵀ when `transpose_a`; the arguments are those of `jax.lax.linalg.triangular_solve`
-    (real matrices: `conjugate_a` changes nothing), and the other triangle of A is ignored.
-    Substitution by columns: each solved row x_i is removed from the rows still to solve,
-    B ← B − op(A)[:, i] x_i, one vector expression per row.
+    (real matrices: `conjugate_a` changes nothing).
     """
     del conjugate_a
     if not left_side:
@@ -68,17 +67,16 @@ def triangular_solve(a: jax.Array, b: jax.Array, *, left_side: bool, lower: bool
         return jnp.swapaxes(solution, -1, -2)
     n = a.shape[-1]
     # The effective matrix M = op(A) is lower triangular iff lower != transpose_a.
-    order = list(range(n)) if lower != transpose_a else list(range(n - 1, -1, -1))
-    residual = b
+    m = (lambda i, j: a[..., j, i]) if transpose_a else (lambda i, j: a[..., i, j])
+    order = range(n) if lower != transpose_a else range(n - 1, -1, -1)
+    rows = [b[..., i, :] for i in range(n)]
     solution = [None] * n
-    for step, i in enumerate(order):
-        row = residual[..., i, :]
-        solution[i] = row if unit_diagonal else row / a[..., i, i, None]
-        to_solve = np.isin(np.arange(n), order[step + 1:])
-        if to_solve.any():
-            column = a[..., i, :] if transpose_a else a[..., :, i]      # M[:, i]
-            column = jnp.where(to_solve, column, 0.0)
-            residual = residual - column[..., :, None] * solution[i][..., None, :]
+    done = []
+    for i in order:
+        residual = rows[i] - sum((m(i, j)[..., None] * solution[j] for j in done),
+                                 jnp.zeros_like(rows[i]))
+        solution[i] = residual if unit_diagonal else residual / m(i, i)[..., None]
+        done.append(i)
     return jnp.stack(solution, -2)
 
 
