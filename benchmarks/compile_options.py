@@ -1,7 +1,8 @@
 """XLA compile options: compile time of a run's programs and the speed of what they compile.
 
 halfcheetah, paper configuration. For each set of `XLA_FLAGS`, in a fresh process: `init` and
-`generation_step` compiled side by side as the CLI does (seconds until each is ready), then
+the two phases of a generation compiled side by side as the CLI does (seconds until the
+phases, and until all three, are ready), then
 `init` run and generations timed from its state (median of 3 after one untimed; T = 400, the
 first generations' episode limit, before Q-filtering starts).
 
@@ -16,13 +17,12 @@ import sys
 import time
 
 _AUTOTUNE_OFF = "--xla_gpu_autotune_level=0"
-_PARALLEL_LLVM = ("--xla_gpu_enable_llvm_module_compilation_parallelism=true "
-                  "--xla_gpu_force_compilation_parallelism=16")
+_PARALLEL = "--xla_gpu_force_compilation_parallelism=16"
 VARIANTS = {
     "default": "",
     "autotune_off": _AUTOTUNE_OFF,
-    "parallel_llvm": _PARALLEL_LLVM,
-    "autotune_off+parallel_llvm": f"{_AUTOTUNE_OFF} {_PARALLEL_LLVM}",
+    "parallel_16": _PARALLEL,
+    "autotune_off+parallel_16": f"{_AUTOTUNE_OFF} {_PARALLEL}",
 }
 
 
@@ -41,21 +41,23 @@ def child() -> dict:
     keys = (jax.random.PRNGKey(0), jax.random.PRNGKey(100))
     abstract = jax.eval_shape(lambda k, e: pgps.init(config, env, k, e), *keys)
     start = time.perf_counter()
+    play, learn = pgps.make_generation_phases(config, env)
     futures = compile_ahead({"init": (pgps.make_init(config, env), keys),
-                             "step": (pgps.make_generation_step(config, env), (abstract,))})
-    step = futures["step"].result()
+                             "play": (play, (abstract,)),
+                             "learn": (learn, jax.eval_shape(play, abstract))})
+    play, learn = futures["play"].result(), futures["learn"].result()
     step_s = time.perf_counter() - start
     init = futures["init"].result()
     both_s = time.perf_counter() - start
     state = init(*keys)
-    state, _ = step(state)
+    state, _ = learn(*play(state))
     times = []
     for _ in range(3):
         t = time.perf_counter()
-        state, metrics = step(state)
+        state, metrics = learn(*play(state))
         jax.block_until_ready(metrics)
         times.append(time.perf_counter() - t)
-    return {"generation_step_compile_s": step_s, "init_and_step_compile_s": both_s,
+    return {"generation_phases_compile_s": step_s, "init_and_phases_compile_s": both_s,
             "generation_ms": sorted(times)[1] * 1e3,
             "episode_limit": int(metrics["gen/episode_limit"])}
 

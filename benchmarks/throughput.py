@@ -10,7 +10,7 @@ Q-filtering active:
     (a) + updates per run × (b).
   - critic and actor updates per second of the project's TD3 at batch 256.
 With --full-run TASK: the wall-clock of a whole 1M-step run (as the CLI runs it, without file
-I/O: a test evaluation begun every 10,000 steps inside generation_step) for 1 seed and for 5
+I/O: a test evaluation begun every 10,000 steps inside each generation) for 1 seed and for 5
 seeds vmapped; compile time reported separately.
 
     python benchmarks/throughput.py --tasks halfcheetah hopper --full-run halfcheetah
@@ -230,7 +230,8 @@ def components(task: str) -> dict:
 # ---------------------------------------------------------------------------- full 1M-step run
 def full_run(task: str, seeds: int) -> dict:
     """A whole 1M-step run as the CLI runs it, without file I/O: programs compiled ahead of
-    time side by side, a test evaluation begun every 10k steps inside generation_step, the one
+    time side by side (`init` and the two phases of a generation, then the two end-of-run
+    programs), a test evaluation begun every 10k steps inside each generation, the one
     under way finished and the final state evaluated at the end. Wall-clock, compile time,
     generations and the eval curve of μ."""
     config = bench_config(task).replace(eval_every=EVAL_EVERY)
@@ -239,8 +240,8 @@ def full_run(task: str, seeds: int) -> dict:
     eval_keys = jax.vmap(lambda s: jax.random.PRNGKey(s + 100))(jnp.arange(seeds))
     bind = functools.partial
     if seeds == 1:
-        programs = {"init": pgps.make_init(config, env),
-                    "step": pgps.make_generation_step(config, env),
+        play, learn = pgps.make_generation_phases(config, env)
+        programs = {"init": pgps.make_init(config, env), "play": play, "learn": learn,
                     "finish": pgps.make_finish_evaluation(config, env),
                     "evaluate": pgps.make_evaluate(config, env)}
         keys, eval_keys = keys[0], eval_keys[0]
@@ -248,20 +249,24 @@ def full_run(task: str, seeds: int) -> dict:
     else:
         programs = {
             "init": jax.jit(jax.vmap(bind(pgps.init, config, env))),
-            "step": jax.jit(jax.vmap(bind(pgps.generation_step, config, env)), donate_argnums=0),
+            "play": jax.jit(jax.vmap(bind(pgps.play_generation, config, env)),
+                            donate_argnums=0),
+            "learn": jax.jit(jax.vmap(bind(pgps.learn_generation, config, env)),
+                             donate_argnums=0),
             "finish": jax.jit(jax.vmap(bind(pgps.finish_evaluation, config, env)),
                               donate_argnums=0),
             "evaluate": jax.jit(jax.vmap(bind(pgps.evaluate, config, env)))}
         abstract = jax.eval_shape(jax.vmap(bind(pgps.init, config, env)), keys, eval_keys)
     start = time.perf_counter()
     args = {name: (keys, eval_keys) if name == "init" else (abstract,) for name in programs}
+    args["learn"] = jax.eval_shape(programs["play"], abstract)
     compiled = compile_ahead(
-        {name: (programs[name], args[name]) for name in ("init", "step")},
+        {name: (programs[name], args[name]) for name in ("init", "play", "learn")},
         later={name: (programs[name], args[name]) for name in ("finish", "evaluate")})
-    step = compiled["step"].result()
+    play, learn = compiled["play"].result(), compiled["learn"].result()
     step_compile_s = time.perf_counter() - start
     init = compiled["init"].result()
-    compile_s = time.perf_counter() - start      # init and step compiled, side by side
+    compile_s = time.perf_counter() - start      # init and both phases compiled, side by side
     state = jax.block_until_ready(init(keys, eval_keys))
     init_run_s = time.perf_counter() - start - compile_s
     curve, generations, per_generation = [], 0, []
@@ -276,20 +281,20 @@ def full_run(task: str, seeds: int) -> dict:
 
     while int(np.min(jax.device_get(state.total_steps))) < TOTAL_STEPS:
         t = time.perf_counter()
-        state, metrics = step(state)
+        state, metrics = learn(*play(state))
         generations += 1
         limit, steps = record(metrics, "gen/episode_limit", "gen/interaction_steps")
         per_generation.append([time.perf_counter() - t, np.asarray(limit).max().tolist(),
                                np.asarray(steps).max().tolist()])
     end = time.perf_counter()
-    if np.any(jax.device_get(state.evaluation.active)):
+    while np.any(jax.device_get(state.evaluation.active)):
         state, metrics = compiled["finish"].result()(state)
         record(metrics)
     final = np.asarray(compiled["evaluate"].result()(state)["eval/mu_mean"]).tolist()
     wall = time.perf_counter() - start
     end_s = time.perf_counter() - end
     return {"task": task, "seeds": seeds, "wall_s_including_compile": wall,
-            "compile_s": compile_s, "generation_step_compile_s": step_compile_s,
+            "compile_s": compile_s, "generation_phases_compile_s": step_compile_s,
             "init_run_s": init_run_s, "generations_s": sum(g[0] for g in per_generation),
             "end_s": end_s, "generations": generations, "evaluations": len(curve) + 1,
             "final_eval_mu_mean": final, "eval_curve_every_10th": curve[::10],

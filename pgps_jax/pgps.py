@@ -17,9 +17,12 @@ One generation (Algorithm 1, lines 6-37):
 Test evaluation (Section 5.1) rides along: when `eval_every` env steps have passed, the
 generation snapshots μ, the TD3 actor and the elite and starts their test episodes in the same
 batch as the population's rollout. They advance with every later rollout — adding no
-sequential env steps — and their returns are reported by the generation in which they end. A
-rollout runs on past its population only when the next evaluation would otherwise fall due
-before this one has ended.
+sequential env steps — and their returns are reported by the first generation that ends with
+them ended. If the previous evaluation is still under way when the next falls due, the next
+one is queued: its episodes take over the test slots inside the rollout, in the step after the
+previous one's last episode ends (every evaluation starts from the same states, so when it
+starts changes none of its returns). A rollout runs on past its population only when an
+evaluation is queued and another could fall due before the next generation.
 """
 
 import functools
@@ -34,17 +37,23 @@ from pgps_jax import buffer as replay
 from pgps_jax import cem, qfilter
 from pgps_jax.config import PGPSConfig
 from pgps_jax.networks import actor_flattener, first_q, flatten
-from pgps_jax.rollout import EpisodeState, begin_episodes, play, random_warmup, run_episodes
+from pgps_jax.buffer import Transition
+from pgps_jax.rollout import (EpisodeState, Relay, begin_episodes, play, random_warmup,
+                              run_episodes)
 from pgps_jax.td3 import TD3, TD3State
 
 
 @chex.dataclass(frozen=True)
 class EvaluationState:
-    """The test episodes under way (Section 5.1), carried from generation to generation."""
+    """The test episodes under way (Section 5.1) and the evaluation queued behind them,
+    carried from generation to generation."""
     episodes: EpisodeState       # [A·E] episodes of the actors, E per actor, in EVALUATED order
-    actors: jax.Array            # [A, P] the actors as they were when the evaluation began
-    step: jax.Array              # [] int32 total_steps when it began
+    actors: jax.Array            # [A, P] the actors as they were when the evaluation fell due
+    step: jax.Array              # [] int32 total_steps when it fell due
     active: jax.Array            # [] bool, begun and not yet reported
+    queued_actors: jax.Array     # [A, P] the next evaluation's actors, waiting for the slots
+    queued_step: jax.Array       # [] int32 total_steps when it fell due
+    queued: jax.Array            # [] bool, an evaluation is queued
 
 
 @chex.dataclass(frozen=True)
@@ -110,8 +119,10 @@ def init(config: PGPSConfig, env: Env, key: jax.Array,
         total_steps = steps_per_env * config.pop_size
     eval_key = jax.random.fold_in(key, 100) if eval_key is None else eval_key
     mean = flatten(td3_state.actor)
-    idle = _begin_evaluation(config, env, jnp.stack([mean] * len(EVALUATED)), eval_key,
-                             jnp.zeros((), jnp.int32), active=False)
+    actors, zero = jnp.stack([mean] * len(EVALUATED)), jnp.zeros((), jnp.int32)
+    idle = EvaluationState(episodes=_test_episodes(config, env, eval_key, steps=0),
+                           actors=actors, step=zero, active=jnp.asarray(False),
+                           queued_actors=actors, queued_step=zero, queued=jnp.asarray(False))
     return TrainState(cem=cem.init(mean, config.sigma_init),
                       td3=td3_state, buffer=buffer,
                       beta=jnp.asarray(config.beta_init, jnp.float32),
@@ -144,6 +155,11 @@ def _population(config: PGPSConfig, td3: TD3, unflatten: Callable, state: TrainS
                         lambda population: population, population)
 
 
+def _choose(pred: jax.Array, on_true, on_false):
+    """`on_true` if the scalar `pred` holds, else `on_false` (pytrees of one structure)."""
+    return jax.tree.map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
+
+
 def _td3_return(config: PGPSConfig, returns: jax.Array) -> jax.Array:
     """The TD3 actor's return: slot N−1 (PG→EA), the probe slot N, or NaN where it never plays."""
     if config.pg_guides_ea:
@@ -153,15 +169,32 @@ def _td3_return(config: PGPSConfig, returns: jax.Array) -> jax.Array:
     return jnp.asarray(jnp.nan)
 
 
-def generation_step(config: PGPSConfig, env: Env,
-                    state: TrainState) -> tuple[TrainState, dict]:
-    """One generation of Algorithm 1. Pure; bind config/env with `make_generation_step`."""
+@chex.dataclass(frozen=True)
+class Played:
+    """What a generation's episodes leave for its learning phase (`play_generation` →
+    `learn_generation`)."""
+    population: jax.Array        # [N, P] the actors that played (CEM ranks them)
+    episodes: EpisodeState       # [N'] their episodes, N' = N (+1 with the TD3 probe)
+    transitions: Transition      # [t_max, N'] what they met, row by loop step
+    valid: jax.Array             # [t_max, N'] rows to store in the buffer
+    limit: jax.Array             # [] int32 the episode limit T of this generation
+    td3_turn: jax.Array          # [] bool, the TD3 actor played (every F generations)
+    train_key: jax.Array         # PRNG key of the TD3 updates
+    evaluation: dict             # the `eval/*` metrics of an evaluation that ended
+
+
+def play_generation(config: PGPSConfig, env: Env,
+                    state: TrainState) -> tuple[TrainState, Played]:
+    """Algorithm 1 lines 6-18: the generation's actors and their episodes.
+
+    Returns `state` with its test evaluation advanced (and its key), and the episodes for
+    `learn_generation`. Pure; `generation_step` is the two phases in one function.
+    """
     td3, unflatten = _parts(config, env)
     (sample_key, candidate_key, states_key, reset_key, train_key,
      next_key) = jax.random.split(state.key, 6)
     n = config.pop_size
-    generation = state.generation + 1
-    td3_turn = (generation % config.td3_to_cem_period) == 0
+    td3_turn = ((state.generation + 1) % config.td3_to_cem_period) == 0
 
     population = _population(config, td3, unflatten, state, sample_key, candidate_key,
                              states_key)
@@ -175,35 +208,73 @@ def generation_step(config: PGPSConfig, env: Env,
         limits = jnp.append(limits, jnp.where(td3_turn, limit, 0))
     num_rollout = actors.shape[0]
 
-    # test episodes: begin an evaluation when due; end it now if the next one would fall due
-    # before the next generation (this one's rollout adds at most sum(limits) env steps)
+    # test episodes: an evaluation that falls due begins now, or is queued behind the one
+    # under way; with one queued, the rollout runs on until it has begun if another could
+    # fall due before the next generation (this rollout adds at most sum(limits) env steps)
+    running = state.evaluation
     eval_due = state.total_steps >= state.next_eval
-    fresh = _begin_evaluation(config, env, _evaluated_actors(state), state.eval_key,
-                              state.total_steps)
-    ongoing = jax.tree.map(lambda a, b: jnp.where(eval_due, a, b), fresh, state.evaluation)
+    begin_now, queue_now = eval_due & ~running.active, eval_due & running.active
+    snapshot = _evaluated_actors(state)
+    fresh = _test_episodes(config, env, state.eval_key, config.eval_steps)
+    ongoing = running.replace(
+        episodes=_choose(begin_now, fresh, running.episodes),
+        actors=jnp.where(begin_now, snapshot, running.actors),
+        step=jnp.where(begin_now, state.total_steps, running.step),
+        active=running.active | begin_now,
+        queued_actors=jnp.where(queue_now, snapshot, running.queued_actors),
+        queued_step=jnp.where(queue_now, state.total_steps, running.queued_step),
+        queued=running.queued | queue_now)
     next_eval = jnp.where(eval_due,
                           (state.total_steps // config.eval_every + 1) * config.eval_every,
                           state.next_eval)
-    finish_eval = state.total_steps + limits.sum() >= next_eval
 
-    eval_actors = jnp.repeat(ongoing.actors, config.eval_episodes, axis=0)
-    batch = jax.tree.map(lambda a, b: jnp.concatenate([a, b]),
-                         begin_episodes(env, jax.random.split(reset_key, num_rollout), limits),
-                         ongoing.episodes)
-    drive = jnp.arange(batch.alive.shape[0]) < num_rollout
-    batch, transitions, valid = play(env, _policy(td3, unflatten),
-                                     jnp.concatenate([actors, eval_actors]), batch,
-                                     max(config.t_max, config.eval_steps),
-                                     drive=drive | finish_eval)
-    episodes = jax.tree.map(lambda x: x[:num_rollout], batch)
+    population_episodes = begin_episodes(env, jax.random.split(reset_key, num_rollout), limits)
+    join = functools.partial(jax.tree.map, lambda a, b: jnp.concatenate([a, b]))
+    test_slots = jnp.arange(num_rollout + fresh.alive.shape[0]) >= num_rollout
+    relay = Relay(slots=test_slots, episodes=join(population_episodes, fresh),
+                  params=jnp.concatenate([actors, _test_actors(config, ongoing.queued_actors)]),
+                  pending=ongoing.queued,
+                  hurry=ongoing.queued & (state.total_steps + limits.sum() >= next_eval),
+                  ended_returns=jnp.zeros(test_slots.shape))
+    batch, transitions, valid, relay = play(
+        env, _policy(td3, unflatten),
+        jnp.concatenate([actors, _test_actors(config, ongoing.actors)]),
+        join(population_episodes, ongoing.episodes), max(config.t_max, config.eval_steps),
+        drive=~test_slots, relay=relay)
     eval_episodes = jax.tree.map(lambda x: x[num_rollout:], batch)
-    buffer = replay.add(state.buffer, jax.tree.map(lambda x: x[:, :num_rollout], transitions),
-                        valid[:, :num_rollout])
+    # the evaluation under way when the rollout began has ended: at the hand-over, or by now
+    handed_over = ongoing.queued & ~relay.pending
+    eval_done = ongoing.active & (handed_over | ~jnp.any(eval_episodes.alive))
+    eval_returns = jnp.where(handed_over, relay.ended_returns[num_rollout:],
+                             eval_episodes.returns)
+    after = _choose(handed_over,
+                    ongoing.replace(episodes=eval_episodes, actors=ongoing.queued_actors,
+                                    step=ongoing.queued_step, active=jnp.asarray(True),
+                                    queued=jnp.asarray(False)),
+                    ongoing.replace(episodes=eval_episodes, active=ongoing.active & ~eval_done))
+    state = state.replace(next_eval=next_eval, key=next_key, evaluation=after)
+    return state, Played(population=population,
+                         episodes=jax.tree.map(lambda x: x[:num_rollout], batch),
+                         transitions=jax.tree.map(lambda x: x[:config.t_max, :num_rollout],
+                                                  transitions),
+                         valid=valid[:config.t_max, :num_rollout], limit=limit,
+                         td3_turn=td3_turn, train_key=train_key,
+                         evaluation=_evaluation_report(ongoing, eval_done, eval_returns))
+
+
+def learn_generation(config: PGPSConfig, env: Env, state: TrainState,
+                     played: Played) -> tuple[TrainState, dict]:
+    """Algorithm 1 lines 19-37: the buffer takes the episodes' transitions, CEM ranks the
+    population, TD3 trains (with L^A toward the elite if its actor fell behind). Returns the
+    next state and the generation's metrics."""
+    td3, unflatten = _parts(config, env)
+    n = config.pop_size
+    episodes, td3_turn = played.episodes, played.td3_turn
+    buffer = replay.add(state.buffer, played.transitions, played.valid)
     interaction_steps = episodes.lengths.sum()
-    eval_done = ongoing.active & ~jnp.any(eval_episodes.alive)
 
     returns = episodes.returns[:n]
-    new_cem = cem.tell(state.cem, population, returns, top_k=config.top_k,
+    new_cem = cem.tell(state.cem, played.population, returns, top_k=config.top_k,
                        sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
                        divide_by_k=config.cem_divide_by_k)
     td3_in_episodes = config.pg_guides_ea or config.td3_probe
@@ -213,26 +284,24 @@ def generation_step(config: PGPSConfig, env: Env,
     else:
         guided = jnp.zeros((), bool)
 
+    num_rollout = episodes.lengths.shape[0]
     num_update = interaction_steps // config.update_blocks
     max_update = num_rollout * config.t_max // config.update_blocks
-    new_td3, beta, losses = td3.train(state.td3, buffer, train_key, num_update, max_update,
-                                      unflatten(new_cem.elite), guided, state.beta)
-    new_state = TrainState(cem=new_cem, td3=new_td3, buffer=buffer, beta=beta,
-                           generation=generation,
-                           total_steps=state.total_steps + interaction_steps,
-                           next_eval=next_eval,
-                           evaluation=ongoing.replace(episodes=eval_episodes,
-                                                      active=ongoing.active & ~eval_done),
-                           key=next_key, eval_key=state.eval_key)
+    new_td3, beta, losses = td3.train(state.td3, buffer, played.train_key, num_update,
+                                      max_update, unflatten(new_cem.elite), guided, state.beta)
+    generation = state.generation + 1
+    new_state = state.replace(cem=new_cem, td3=new_td3, buffer=buffer, beta=beta,
+                              generation=generation,
+                              total_steps=state.total_steps + interaction_steps)
     metrics = {
         "gen/generation": generation,
         "gen/total_steps": new_state.total_steps,
-        "gen/episode_limit": limit,
+        "gen/episode_limit": played.limit,
         "gen/interaction_steps": interaction_steps,
         "gen/q_filter_active": (state.total_steps >= config.q_filter_start) & config.q_filter,
         "pop/return_mean": jnp.mean(returns),
         "pop/return_std": jnp.std(returns),
-        "pop/unstable_episodes": episodes.unstable[:num_rollout].sum(),
+        "pop/unstable_episodes": episodes.unstable.sum(),
         "cem/elite_return": jnp.max(returns),
         "cem/var_mean": jnp.mean(new_cem.var),
         "cem/damping": new_cem.damping,
@@ -242,37 +311,51 @@ def generation_step(config: PGPSConfig, env: Env,
         "td3/beta": beta,
         **{f"pop/return_{i}": returns[i] for i in range(n)},
         **losses,
-        **_evaluation_report(ongoing, eval_done, eval_episodes.returns),
+        **played.evaluation,
     }
     return new_state, metrics
+
+
+def generation_step(config: PGPSConfig, env: Env,
+                    state: TrainState) -> tuple[TrainState, dict]:
+    """One generation of Algorithm 1: `play_generation`, then `learn_generation`. Pure; bind
+    config/env with `make_generation_step`."""
+    return learn_generation(config, env, *play_generation(config, env, state))
 
 
 EVALUATED = ("mu", "td3", "elite")
 """The actors each evaluation tests, in batch order: the CEM mean μ, the TD3 actor, the elite."""
 
 
-def _begin_evaluation(config: PGPSConfig, env: Env, actors: jax.Array, key: jax.Array,
-                      step: jax.Array, active: bool = True) -> EvaluationState:
-    """Test episodes of `actors` [A, P] from the E start states of `key`, begun at `step`
-    (with `active` False: an idle evaluation whose episodes never run)."""
-    _, keys = evaluation_batch(actors, key, config.eval_episodes)
-    limit = config.eval_steps if active else 0
-    episodes = begin_episodes(env, keys, jnp.full((keys.shape[0],), limit))
-    return EvaluationState(episodes=episodes, actors=actors, step=step,
-                           active=jnp.asarray(active))
+def _test_episodes(config: PGPSConfig, env: Env, key: jax.Array, steps: int) -> EpisodeState:
+    """Fresh test episodes [A·E] of `steps` steps (0: idle) from the E start states of `key`,
+    the same for every actor, in EVALUATED order."""
+    keys = evaluation_keys(key, len(EVALUATED), config.eval_episodes)
+    return begin_episodes(env, keys, jnp.full((keys.shape[0],), steps))
+
+
+def _test_actors(config: PGPSConfig, actors: jax.Array) -> jax.Array:
+    """The actors [A, P] of an evaluation, one row per test episode [A·E, P]."""
+    return jnp.repeat(actors, config.eval_episodes, axis=0)
 
 
 def finish_evaluation(config: PGPSConfig, env: Env,
                       state: TrainState) -> tuple[TrainState, dict]:
     """Plays the evaluation under way to its end (for a run's last generation, whose test
-    episodes no later generation will advance). Returns the state and the `eval/*` metrics
-    that generation_step reports; `eval/done` is False when no evaluation was under way."""
+    episodes no later generation will advance), then begins the queued one, if any. Returns
+    the state and the `eval/*` metrics that generation_step reports; `eval/done` is False
+    when no evaluation was under way. Call it until `state.evaluation.active` is False."""
     td3, unflatten = _parts(config, env)
     ongoing = state.evaluation
-    episodes, _, _ = play(env, _policy(td3, unflatten),
-                          jnp.repeat(ongoing.actors, config.eval_episodes, axis=0),
-                          ongoing.episodes, config.eval_steps, record=False)
-    evaluation = ongoing.replace(episodes=episodes, active=jnp.asarray(False))
+    episodes, _, _, _ = play(env, _policy(td3, unflatten),
+                             _test_actors(config, ongoing.actors), ongoing.episodes,
+                             config.eval_steps, record=False)
+    queued = ongoing.replace(episodes=_test_episodes(config, env, state.eval_key,
+                                                     config.eval_steps),
+                             actors=ongoing.queued_actors, step=ongoing.queued_step,
+                             active=jnp.asarray(True), queued=jnp.asarray(False))
+    idle = ongoing.replace(episodes=episodes, active=jnp.asarray(False))
+    evaluation = _choose(ongoing.queued, queued, idle)
     return (state.replace(evaluation=evaluation),
             _evaluation_report(ongoing, ongoing.active, episodes.returns))
 
@@ -285,11 +368,16 @@ def _evaluation_report(evaluation: EvaluationState, done: jax.Array,
     return {"eval/done": done, "eval/step": evaluation.step, **metrics}
 
 
+def evaluation_keys(key: jax.Array, num_actors: int, episodes: int) -> jax.Array:
+    """Reset keys [A·E] giving each of A actors the same E start states of `key`."""
+    return jnp.tile(jax.random.split(key, episodes), (num_actors, 1))
+
+
 def evaluation_batch(actors: jax.Array, key: jax.Array,
                      episodes: int) -> tuple[jax.Array, jax.Array]:
     """Actors [A, P] repeated to [A·E, P], and reset keys giving every actor the same E starts."""
     return (jnp.repeat(actors, episodes, axis=0),
-            jnp.tile(jax.random.split(key, episodes), (actors.shape[0], 1)))
+            evaluation_keys(key, actors.shape[0], episodes))
 
 
 def _evaluated_actors(state: TrainState) -> jax.Array:
@@ -336,6 +424,16 @@ def make_generation_step(config: PGPSConfig, env: Env,
     donated by default, so the buffer is updated in place (do not reuse the state passed in)."""
     return jax.jit(functools.partial(generation_step, config, env),
                    donate_argnums=(0,) if donate else ())
+
+
+@functools.lru_cache(maxsize=None)
+def make_generation_phases(config: PGPSConfig, env: Env) -> tuple[Callable, Callable]:
+    """`play_generation` and `learn_generation` jitted apart (cached; each donates the state):
+    `learn(*play(state))` is one generation, as `make_generation_step` computes it. Compiled
+    side by side, the two programs are ready sooner than the one program of
+    `generation_step`, and calling two programs per generation costs nothing measurable."""
+    return (jax.jit(functools.partial(play_generation, config, env), donate_argnums=(0,)),
+            jax.jit(functools.partial(learn_generation, config, env), donate_argnums=(0,)))
 
 
 @functools.lru_cache(maxsize=None)

@@ -1,15 +1,16 @@
 """The host-side training loop of `python -m pgps_jax.train` (see `pgps_jax.train`).
 
-It calls the compiled `generation_step` (state donated) and fetches each generation's metrics
-with one `jax.device_get`, then writes the logs and checkpoints. The test evaluation runs
-inside `generation_step`, alongside the rollouts: it begins whenever the env steps have
-reached a multiple of `eval_every` (and in the first generation, after the warm-up), tests
-the actors of the state that generation starts from, and is written, under that state's step
-count, by the generation in which its episodes end. After the last generation an evaluation
-still under way is played to its end and the final state is evaluated with `pgps.evaluate`.
+It calls the compiled phases of a generation (`pgps.make_generation_phases`: play, then learn,
+the state donated) and fetches each generation's metrics with one `jax.device_get`, then
+writes the logs and checkpoints. The test evaluation runs inside the generations, alongside
+the rollouts: it falls due whenever the env steps have reached a multiple of `eval_every`
+(and in the first generation, after the warm-up), tests the actors of the state that
+generation starts from, and is written, under that state's step count, by the generation in
+which its episodes have ended. After the last generation the evaluations still under way or
+queued are played to their end and the final state is evaluated with `pgps.evaluate`.
 Checkpoints are written every `checkpoint_every` generations, at the end and on SIGINT /
-SIGTERM. The programs compile ahead of time side by side (`compile_ahead`): `init` with
-`generation_step`, then the two end-of-run programs in the background while the run trains.
+SIGTERM. The programs compile ahead of time side by side (`compile_ahead`): `init` with the
+two phases, then the two end-of-run programs in the background while the run trains.
 Nothing here runs inside jit. The run directory's contents are listed in `pgps_jax.run_dir`.
 """
 
@@ -126,7 +127,9 @@ class Trainer:
         abstract = jax.eval_shape(functools.partial(pgps.init, self.config, self.env),
                                   seed_key, eval_key)
         c, env = self.config, self.env
-        programs = {"generation_step": (pgps.make_generation_step(c, env), (abstract,))}
+        play, learn = pgps.make_generation_phases(c, env)
+        programs = {"play": (play, (abstract,)),
+                    "learn": (learn, jax.eval_shape(play, abstract))}
         if self.p.resume_step is None:
             programs["init"] = (pgps.make_init(c, env), (seed_key, eval_key))
         self.programs = compile_ahead(programs, later={
@@ -170,7 +173,8 @@ class Trainer:
     def step(self, state):
         """One generation, its logs, and the evaluation / checkpoint when due."""
         start = time.perf_counter()
-        state, metrics = self.programs["generation_step"].result()(state)
+        state, played = self.programs["play"].result()(state)
+        state, metrics = self.programs["learn"].result()(state, played)
         m = jax.device_get(metrics)
         seconds = time.perf_counter() - start
         previous = self.total
@@ -207,9 +211,9 @@ class Trainer:
         return state
 
     def final_evaluation(self, state):
-        """Ends the evaluation under way, then evaluates the state the run ends with (no later
-        generation will do either). Returns the state."""
-        if bool(state.evaluation.active):
+        """Ends the evaluation under way and the one queued behind it, then evaluates the state
+        the run ends with (no later generation will do either). Returns the state."""
+        while bool(state.evaluation.active):
             state, m = self.programs["finish_evaluation"].result()(state)
             m = jax.device_get(m)
             self._record_evaluation(int(m["eval/step"]), m)

@@ -103,6 +103,24 @@ def test_vmap_over_seeds_equals_separate_runs():
             float(metrics["td3/critic_loss"]), rel=1e-4)
 
 
+def test_the_two_phases_compute_one_generation_step():
+    """The trainer's two programs (play, then learn) give what generation_step gives, over
+    generations in which an evaluation begins and ends."""
+    config = SMALL.replace(eval_every=40)       # due every generation: some are queued
+    whole_state = pgps.make_init(config, ENV)(jax.random.PRNGKey(3))
+    phased_state = jax.tree.map(jnp.copy, whole_state)
+    whole = pgps.make_generation_step(config, ENV)
+    play, learn = pgps.make_generation_phases(config, ENV)
+    ended = 0
+    for _ in range(5):
+        whole_state, whole_metrics = whole(whole_state)
+        phased_state, phased_metrics = learn(*play(phased_state))
+        ended += int(phased_metrics["eval/done"])
+        jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6),
+                     (whole_state, whole_metrics), (phased_state, phased_metrics))
+    assert ended >= 2
+
+
 def test_population_layout_and_counters():
     state = pgps.make_init(SMALL, ENV)(jax.random.PRNGKey(0))
     elite_before = state.cem.elite
@@ -155,20 +173,18 @@ def test_training_raises_the_return_of_mu():
     assert after["eval/mu_returns"].shape == (3,)
 
 
-def test_evaluation_rides_along_and_equals_standalone_evaluate():
-    """Test episodes begun when due run alongside later rollouts; the generation in which they
-    end reports exactly what `evaluate` gives for the state they began from."""
-    config = SMALL.replace(eval_every=100)      # generations of 40-80 steps, tests of 20 steps
-    state = pgps.make_init(config, ENV)(jax.random.PRNGKey(5), jax.random.PRNGKey(5 + 100))
+def _check_evaluations(config, seed, generations):
+    """Runs `generations` generations, then finishes the evaluations left. Checks that every
+    evaluation that fell due is reported once, in order, with exactly what `evaluate` gives
+    for the state it fell due in, and that test episodes are neither stored nor counted.
+    Returns [(step, generation reported)] and whether one fell due while another was under
+    way (and was queued)."""
+    state = pgps.make_init(config, ENV)(jax.random.PRNGKey(seed), jax.random.PRNGKey(seed + 100))
     step = pgps.make_generation_step(config, ENV, donate=False)
     evaluate = pgps.make_evaluate(config, ENV)
-    expected, begun_in, reported = {}, {}, []
-    for generation in range(8):
-        if int(state.total_steps) >= int(state.next_eval):
-            assert not bool(state.evaluation.active)    # never two evaluations at once
-            expected[int(state.total_steps)] = evaluate(state)
-            begun_in[int(state.total_steps)] = generation
-        state, metrics = step(state)
+    expected, reported, queued = {}, [], False
+
+    def check(metrics, generation):
         if bool(metrics["eval/done"]):
             at = int(metrics["eval/step"])
             reported.append((at, generation))
@@ -177,27 +193,53 @@ def test_evaluation_rides_along_and_equals_standalone_evaluate():
                                            expected[at][f"eval/{name}_returns"], rtol=1e-5)
         else:
             assert np.isnan(float(metrics["eval/mu_mean"]))
-        # test episodes are neither stored nor counted
+
+    for generation in range(generations):
+        if int(state.total_steps) >= int(state.next_eval):
+            assert not bool(state.evaluation.queued)    # never more than one queued
+            queued |= bool(state.evaluation.active)
+            expected[int(state.total_steps)] = evaluate(state)
+        state, metrics = step(state)
+        check(metrics, generation)
         assert int(state.buffer.size) == int(state.total_steps)
+    finish = pgps.make_finish_evaluation(config, ENV)
+    while bool(state.evaluation.active):
+        state, metrics = finish(state)
+        check(metrics, generations)
     steps = [at for at, _ in reported]
+    assert steps == sorted(expected) and len(steps) == len(set(steps))
+    return reported, queued
+
+
+def test_evaluation_rides_along_and_equals_standalone_evaluate():
+    """Test episodes begun when due run alongside later rollouts; the generation in which they
+    end reports exactly what `evaluate` gives for the state they began from."""
+    config = SMALL.replace(eval_every=100)      # generations of 40-80 steps, tests of 20 steps
+    reported, _ = _check_evaluations(config, 5, 8)
     # begun at the first generation, then once each time the total crosses a multiple of 100
-    assert steps[0] == 100 and len(steps) >= 3
-    assert [s // 100 for s in steps] == sorted(set(s // 100 for s in steps))
-    assert set(steps) == set(expected)
+    assert reported[0][0] == 100 and len(reported) >= 3
+    assert [at // 100 for at, _ in reported] == sorted({at // 100 for at, _ in reported})
     # the first test (20 steps) outlives the first rollout (10 steps) and ends in the next one
-    assert reported[0][1] == begun_in[100] + 1
-    assert all(generation >= begun_in[at] for at, generation in reported)
+    assert reported[0][1] == 1
 
 
-def test_evaluation_ends_before_the_next_falls_due():
-    """When the next evaluation falls due after this generation, the rollout runs on until the
-    test episodes under way have ended, so no evaluation is skipped or cut short."""
-    config = SMALL.replace(eval_every=40)       # due every generation
-    state, history = run(config, 2, 5)
-    done = [bool(m["eval/done"]) for m in history]
-    assert all(done)
-    steps = [int(m["eval/step"]) for m in history]
-    assert steps == sorted(steps) and len(set(steps)) == 5
+@pytest.mark.parametrize("eval_every, eval_steps", [(40, 20), (60, 25)])
+def test_an_evaluation_due_during_another_is_queued_and_none_is_lost(eval_every, eval_steps):
+    """Due every generation, or due while the one under way still needs a rollout and a half:
+    the next is queued, takes over the test slots when the previous ends, and every
+    evaluation still reports the returns of the state it fell due in."""
+    config = SMALL.replace(eval_every=eval_every, eval_steps=eval_steps)
+    reported, queued = _check_evaluations(config, 2, 7)
+    assert queued and len(reported) >= 4
+
+
+def test_finishing_a_run_plays_the_evaluation_under_way_and_the_queued_one():
+    """Tests of 55 steps in rollouts of 10, due at 100 and 120 steps: after two generations
+    the first is still under way with the second queued; finishing reports both."""
+    config = SMALL.replace(eval_every=120, eval_steps=55)
+    reported, queued = _check_evaluations(config, 4, 2)
+    assert queued
+    assert reported == [(100, 2), (140, 2)]
 
 
 def test_finish_evaluation_completes_the_test_under_way():

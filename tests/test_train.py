@@ -1,6 +1,7 @@
 """`python -m pgps_jax.train` end to end on a tiny run: every output file and its columns,
 re-evaluation, bad inputs (message, non-zero exit, nothing half-written) and a NaN stop."""
 
+import functools
 import pathlib
 
 import imageio.v3 as iio
@@ -193,15 +194,16 @@ def test_resume_by_directory_refuses_other_explicit_settings(reference, cache, t
 
 def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(
         monkeypatch, tmp_path, capsys):
-    """The generation step is wrapped to report a NaN critic loss at generation 3."""
-    def poisoned(config, env, donate=True):
-        def step(state):
-            state, metrics = pgps.generation_step(config, env, state)
+    """The learning phase is wrapped to report a NaN critic loss at generation 3."""
+    def poisoned(config, env):
+        def learn(state, played):
+            state, metrics = pgps.learn_generation(config, env, state, played)
             loss = jnp.where(metrics["gen/generation"] == 3, jnp.nan, metrics["td3/critic_loss"])
             return state, {**metrics, "td3/critic_loss": loss}
-        return jax.jit(step, donate_argnums=(0,) if donate else ())
+        return (jax.jit(functools.partial(pgps.play_generation, config, env)),
+                jax.jit(learn, donate_argnums=(0,)))
 
-    monkeypatch.setattr(pgps, "make_generation_step", poisoned)
+    monkeypatch.setattr(pgps, "make_generation_phases", poisoned)
     run_dir = tmp_path / "nan"
     overrides = tiny("checkpoint_every=1", f"run_dir={run_dir}")
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
