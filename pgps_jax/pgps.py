@@ -37,7 +37,6 @@ from pgps_jax import buffer as replay
 from pgps_jax import cem, qfilter
 from pgps_jax.config import PGPSConfig
 from pgps_jax.networks import actor_flattener, first_q, flatten
-from pgps_jax.buffer import Transition
 from pgps_jax.rollout import (EpisodeState, Relay, begin_episodes, play, random_warmup,
                               run_episodes)
 from pgps_jax.td3 import TD3, TD3State
@@ -175,7 +174,7 @@ class Played:
     `learn_generation`)."""
     population: jax.Array        # [N, P] the actors that played (CEM ranks them)
     episodes: EpisodeState       # [N'] their episodes, N' = N (+1 with the TD3 probe)
-    transitions: Transition      # [t_max, N'] what they met, row by loop step
+    transitions: replay.Transition  # [t_max, N'] what they met, row by loop step
     valid: jax.Array             # [t_max, N'] rows to store in the buffer
     limit: jax.Array             # [] int32 the episode limit T of this generation
     td3_turn: jax.Array          # [] bool, the TD3 actor played (every F generations)

@@ -97,8 +97,9 @@ def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeStat
     have all ended (between two steps; the rollout goes on past the driving episodes only if
     `relay.hurry`), and the relay returns with `pending` False and the replaced episodes'
     returns. Returns the episodes, the transitions [max_steps, B] (row t = the loop's t-th
-    step; empty [0, B] unless `record`), their validity [max_steps, B] and the relay. No
-    episode may have more than `max_steps` steps left, counting a relay's from its hand-over.
+    step; empty [0, B] unless `record`), their validity [max_steps, B] and the relay. The loop
+    takes at most `max_steps` steps: no episode that drives it (or that a hurried relay waits
+    for) may have more steps left.
     """
     batch = episodes.alive.shape[0]
     drive = jnp.ones((batch,), bool) if drive is None else drive
