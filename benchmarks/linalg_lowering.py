@@ -23,6 +23,8 @@ import argparse
 import contextlib
 import functools
 import json
+import os
+import sys
 import time
 from unittest import mock
 
@@ -32,7 +34,10 @@ import mujoco
 from mujoco import mjx
 import numpy as np
 
-from pgps_jax.envs import TASKS, make_env, physics, small_linalg
+sys.path.insert(0, os.path.dirname(__file__))
+from throughput import timed  # noqa: E402  (sibling benchmark)
+
+from pgps_jax.envs import TASKS, make_env, physics, small_linalg  # noqa: E402
 
 BATCH, WARMUP, STEPS, REPEATS = 40, 200, 100, 5
 VARIANTS = ("library", "written_out", "written_out_columns", "sparse", "cg")
@@ -126,15 +131,9 @@ def task_row(task, variants, steps, repeats):
                 start, jax.random.PRNGKey(2)).compile()
     row = {}
     for variant in variants:
-        fn, start, key = compiled[variant], starts[variant], jax.random.PRNGKey(1)
-        jax.block_until_ready(fn(start, key))
-        times = []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            jax.block_until_ready(fn(start, key))
-            times.append(time.perf_counter() - t)
-        row[variant] = {"ms_per_step": float(np.median(times)) / steps * 1e3,
-                        "compile_s": compile_s[variant]}
+        _, seconds = timed(compiled[variant], starts[variant], jax.random.PRNGKey(1),
+                           repeats=repeats)
+        row[variant] = {"ms_per_step": seconds / steps * 1e3, "compile_s": compile_s[variant]}
     if "library" in variants:
         reference = one_step["library"](starts["library"], jax.random.PRNGKey(2))
         for variant in (v for v in variants if v.startswith("written_out")):

@@ -246,10 +246,7 @@ def play_generation(config: PGPSConfig, env: Env,
     eval_done = ongoing.active & (handed_over | ~jnp.any(eval_episodes.alive))
     eval_returns = jnp.where(handed_over, relay.ended_returns[num_rollout:],
                              eval_episodes.returns)
-    after = _choose(handed_over,
-                    ongoing.replace(episodes=eval_episodes, actors=ongoing.queued_actors,
-                                    step=ongoing.queued_step, active=jnp.asarray(True),
-                                    queued=jnp.asarray(False)),
+    after = _choose(handed_over, _begin_queued(ongoing, eval_episodes),
                     ongoing.replace(episodes=eval_episodes, active=ongoing.active & ~eval_done))
     state = state.replace(next_eval=next_eval, key=next_key, evaluation=after)
     return state, Played(population=population,
@@ -338,6 +335,13 @@ def _test_actors(config: PGPSConfig, actors: jax.Array) -> jax.Array:
     return jnp.repeat(actors, config.eval_episodes, axis=0)
 
 
+def _begin_queued(evaluation: EvaluationState, episodes: EpisodeState) -> EvaluationState:
+    """The queued evaluation under way in `episodes` [A·E], nothing queued behind it."""
+    return evaluation.replace(episodes=episodes, actors=evaluation.queued_actors,
+                              step=evaluation.queued_step, active=jnp.asarray(True),
+                              queued=jnp.asarray(False))
+
+
 def finish_evaluation(config: PGPSConfig, env: Env,
                       state: TrainState) -> tuple[TrainState, dict]:
     """Plays the evaluation under way to its end (for a run's last generation, whose test
@@ -349,10 +353,8 @@ def finish_evaluation(config: PGPSConfig, env: Env,
     episodes, _, _, _ = play(env, _policy(td3, unflatten),
                              _test_actors(config, ongoing.actors), ongoing.episodes,
                              config.eval_steps, record=False)
-    queued = ongoing.replace(episodes=_test_episodes(config, env, state.eval_key,
-                                                     config.eval_steps),
-                             actors=ongoing.queued_actors, step=ongoing.queued_step,
-                             active=jnp.asarray(True), queued=jnp.asarray(False))
+    queued = _begin_queued(ongoing, _test_episodes(config, env, state.eval_key,
+                                                   config.eval_steps))
     idle = ongoing.replace(episodes=episodes, active=jnp.asarray(False))
     evaluation = _choose(ongoing.queued, queued, idle)
     return (state.replace(evaluation=evaluation),
@@ -361,7 +363,7 @@ def finish_evaluation(config: PGPSConfig, env: Env,
 
 def _evaluation_report(evaluation: EvaluationState, done: jax.Array,
                        returns: jax.Array) -> dict:
-    """`eval/done`, `eval/step` (when the evaluation began) and the `evaluation_metrics` of
+    """`eval/done`, `eval/step` (when the evaluation fell due) and the `evaluation_metrics` of
     its test returns, NaN unless `done`."""
     metrics = {k: jnp.where(done, v, jnp.nan) for k, v in evaluation_metrics(returns).items()}
     return {"eval/done": done, "eval/step": evaluation.step, **metrics}

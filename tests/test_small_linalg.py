@@ -7,7 +7,6 @@ import itertools
 import jax
 from jax.extend import core
 import jax.numpy as jnp
-from jax.lax import linalg
 from mujoco import mjx
 import numpy as np
 import pytest
