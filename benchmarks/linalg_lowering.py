@@ -1,20 +1,24 @@
-"""Physics per env step with MJX's small factorisations as library calls or written out.
+"""Physics per env step with MJX's small factorisations as library calls or written out,
+and with its line search as a device loop or unrolled.
 
 For each task: `physics.step_frames` (an env step's `n_frames` MJX steps) vmapped over batch 40
 (a population of 10 plus 30 test episodes) in a `lax.scan` of uniform random controls, from
 states warmed up by 200 such steps. Variants:
 - `library`: JAX's GPU lowering of `cho_factor` / `cho_solve` (batched cuSOLVER potrf,
   cuBLAS trsm), `write_out_linalg=False`;
-- `written_out`: `small_linalg`'s fused versions (`write_out_linalg=True`, the GPU default),
-  one expression per matrix entry;
+- `written_out`: `small_linalg`'s fused versions (`write_out_linalg=True`), one expression
+  per matrix entry;
+- `unrolled_search`: `written_out` with the Newton solver's line search unrolled
+  (`unroll_line_search=True`; with `written_out`, the GPU default); every other variant keeps
+  it a device loop;
 - `written_out_columns`: the same rewrite with one vector expression per column (fewer
   operations to compile; on an H200 it compiled 16 % faster but stepped 15 % slower);
 - `sparse`: MuJoCo's sparse mass matrix with the library calls (MJX factorises it with
   gathers and scatters; the Newton Hessian still goes to cuSOLVER);
 - `cg`: the CG solver with the library calls (other physics: a reference only).
 Milliseconds per env step (median of 5 calls of 100 steps), compile seconds (each variant
-compiled on its own, one after the other), and the largest |Δqpos|, |Δqvel| of `written_out` against
-`library` after one env step from the same states.
+compiled on its own, one after the other), and the largest |Δqpos|, |Δqvel| of each
+written-out variant against `library` after one env step from the same states.
 
     python benchmarks/linalg_lowering.py [--tasks ...] [--variants ...] [--out FILE] [--smoke]
 """
@@ -40,7 +44,7 @@ from throughput import timed  # noqa: E402  (sibling benchmark)
 from pgps_jax.envs import TASKS, make_env, physics, small_linalg  # noqa: E402
 
 BATCH, WARMUP, STEPS, REPEATS = 40, 200, 100, 5
-VARIANTS = ("library", "written_out", "written_out_columns", "sparse", "cg")
+VARIANTS = ("library", "written_out", "unrolled_search", "written_out_columns", "sparse", "cg")
 
 
 def cholesky_columns(a):
@@ -92,10 +96,12 @@ def forms(variant):
         jax.lax.linalg.triangular_solve_p: triangular_solve_columns})
 
 
-def scan_steps(model, n_frames, n_steps, write_out_linalg):
+def scan_steps(model, n_frames, n_steps, variant):
     """(data, key) -> data after `n_steps` env steps of random controls."""
-    step = jax.vmap(functools.partial(physics.step_frames, model, n_frames=n_frames,
-                                      write_out_linalg=write_out_linalg))
+    step = jax.vmap(functools.partial(
+        physics.step_frames, model, n_frames=n_frames,
+        write_out_linalg=variant.startswith("written_out") or variant == "unrolled_search",
+        unroll_line_search=variant == "unrolled_search"))
 
     def run(data, key):
         controls = jax.random.uniform(key, (n_steps, BATCH, model.nu), minval=-1, maxval=1)
@@ -114,20 +120,20 @@ def variant_model(task, variant) -> mjx.Model:
 def task_row(task, variants, steps, repeats):
     env = make_env(task)
     data = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), BATCH)).pipeline_state
-    warm = scan_steps(env.mjx_model, env.n_frames, WARMUP, False)(data, jax.random.PRNGKey(3))
+    warm = scan_steps(env.mjx_model, env.n_frames, WARMUP, "library")(data,
+                                                                       jax.random.PRNGKey(3))
     starts, compiled, compile_s, one_step = {}, {}, {}, {}
     for variant in variants:
         model = variant_model(task, variant)
         start = jax.vmap(lambda q, v: mjx.make_data(model).replace(qpos=q, qvel=v))(
             warm.qpos, warm.qvel)
         starts[variant] = start
-        written_out = variant.startswith("written_out")
         with forms(variant):
             t = time.perf_counter()
-            compiled[variant] = scan_steps(model, env.n_frames, steps, written_out).lower(
+            compiled[variant] = scan_steps(model, env.n_frames, steps, variant).lower(
                 start, jax.random.PRNGKey(1)).compile()
             compile_s[variant] = time.perf_counter() - t
-            one_step[variant] = scan_steps(model, env.n_frames, 1, written_out).lower(
+            one_step[variant] = scan_steps(model, env.n_frames, 1, variant).lower(
                 start, jax.random.PRNGKey(2)).compile()
     row = {}
     for variant in variants:
@@ -136,7 +142,7 @@ def task_row(task, variants, steps, repeats):
         row[variant] = {"ms_per_step": seconds / steps * 1e3, "compile_s": compile_s[variant]}
     if "library" in variants:
         reference = one_step["library"](starts["library"], jax.random.PRNGKey(2))
-        for variant in (v for v in variants if v.startswith("written_out")):
+        for variant in (v for v in variants if v not in ("library", "sparse", "cg")):
             result = one_step[variant](starts[variant], jax.random.PRNGKey(2))
             row[variant]["max_abs_diff_after_one_step"] = float(max(
                 np.abs(np.asarray(reference.qpos) - np.asarray(result.qpos)).max(),

@@ -34,7 +34,7 @@ from env_latency import bare_rollout  # noqa: E402  (sibling benchmark: the phys
 
 from pgps_jax import buffer as replay  # noqa: E402
 from pgps_jax import cem, pgps  # noqa: E402
-from pgps_jax.compile_ahead import compile_ahead  # noqa: E402
+from pgps_jax.compile_ahead import compile_ahead, compile_kernels_in_parallel  # noqa: E402
 from pgps_jax.config import for_task  # noqa: E402
 from pgps_jax.envs import TASKS, make_env  # noqa: E402
 from pgps_jax.rollout import run_episodes  # noqa: E402
@@ -233,7 +233,8 @@ def full_run(task: str, seeds: int) -> dict:
     time side by side (`init` and the two phases of a generation, then the two end-of-run
     programs), a test evaluation begun every 10k steps inside each generation, the one
     under way finished and the final state evaluated at the end. Wall-clock, compile time,
-    generations and the eval curve of μ."""
+    generations (each timed in its two phases, with a wait between them, and whether it
+    trained on the augmented loss) and the eval curve of μ."""
     config = bench_config(task).replace(eval_every=EVAL_EVERY)
     env = make_env(task)
     keys = jax.random.split(jax.random.PRNGKey(0), seeds)
@@ -269,7 +270,9 @@ def full_run(task: str, seeds: int) -> dict:
     compile_s = time.perf_counter() - start      # init and both phases compiled, side by side
     state = jax.block_until_ready(init(keys, eval_keys))
     init_run_s = time.perf_counter() - start - compile_s
-    curve, generations, per_generation = [], 0, []
+    curve, generations = [], 0
+    per_generation = {"total_s": [], "play_s": [], "learn_s": [], "episode_limit": [],
+                      "interaction_steps": [], "guided": []}
 
     def record(metrics, *extra):
         """Adds an evaluation that ended to the curve; returns the `extra` metrics (host)."""
@@ -281,11 +284,19 @@ def full_run(task: str, seeds: int) -> dict:
 
     while int(np.min(jax.device_get(state.total_steps))) < TOTAL_STEPS:
         t = time.perf_counter()
-        state, metrics = learn(*play(state))
+        played = jax.block_until_ready(play(state))    # one wait more: the phases timed apart
+        t_played = time.perf_counter()
+        state, metrics = learn(*played)
         generations += 1
-        limit, steps = record(metrics, "gen/episode_limit", "gen/interaction_steps")
-        per_generation.append([time.perf_counter() - t, np.asarray(limit).max().tolist(),
-                               np.asarray(steps).max().tolist()])
+        limit, steps, guided = record(metrics, "gen/episode_limit", "gen/interaction_steps",
+                                      "td3/fell_behind")
+        t_learned = time.perf_counter()
+        for column, value in (("total_s", t_learned - t), ("play_s", t_played - t),
+                              ("learn_s", t_learned - t_played),
+                              ("episode_limit", np.asarray(limit).max().tolist()),
+                              ("interaction_steps", np.asarray(steps).max().tolist()),
+                              ("guided", np.asarray(guided).tolist())):
+            per_generation[column].append(value)
     end = time.perf_counter()
     while np.any(jax.device_get(state.evaluation.active)):
         state, metrics = compiled["finish"].result()(state)
@@ -295,10 +306,10 @@ def full_run(task: str, seeds: int) -> dict:
     end_s = time.perf_counter() - end
     return {"task": task, "seeds": seeds, "wall_s_including_compile": wall,
             "compile_s": compile_s, "generation_phases_compile_s": step_compile_s,
-            "init_run_s": init_run_s, "generations_s": sum(g[0] for g in per_generation),
+            "init_run_s": init_run_s, "generations_s": sum(per_generation["total_s"]),
             "end_s": end_s, "generations": generations, "evaluations": len(curve) + 1,
             "final_eval_mu_mean": final, "eval_curve_every_10th": curve[::10],
-            "per_generation_s_limit_steps": per_generation}
+            "per_generation": per_generation}
 
 
 def main():
@@ -309,9 +320,11 @@ def main():
     parser.add_argument("--out", default="benchmarks/results/throughput.json")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()
+    compile_kernels_in_parallel()       # as the CLI does
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True).stdout.strip()
     result = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit,
+              "xla_flags": os.environ.get("XLA_FLAGS", ""),
               "components": [], "full_runs": []}
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
 

@@ -10,11 +10,13 @@ import functools
 import brax
 from etils import epath
 import jax
+from jax.extend.core import primitives
 import mujoco
 from mujoco import mjx
 import numpy as np
 
-from pgps_jax.envs.small_linalg import write_out_small_linalg
+from pgps_jax.envs.jaxpr_rewrite import Rule, rewrite
+from pgps_jax.envs.small_linalg import SMALL_LINALG
 
 _ASSETS = epath.resource_path(brax.__name__) / "envs/assets"
 _SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
@@ -72,14 +74,35 @@ def init_qpos(model: mujoco.MjModel) -> np.ndarray:
     return np.array(model.qpos0)
 
 
+MAX_UNROLLED_SCAN = 8
+"""Longest `lax.scan` in the physics step that `unroll_line_search` writes out step by step."""
+
+
+def _is_short_scan(eqn) -> bool:
+    length = eqn.params.get("length") if eqn.primitive is primitives.scan_p else None
+    return length is not None and length <= MAX_UNROLLED_SCAN and eqn.params["unroll"] != length
+
+
+UNROLLED_LINE_SEARCH = Rule(
+    applies=_is_short_scan,
+    compute=lambda eqn, inputs, params: primitives.scan_p.bind(
+        *inputs, **{**params, "unroll": params["length"]}))
+"""MJX's line search (a `lax.scan` of `ls_iterations` steps, each step skipped by a `lax.cond`
+once converged; under `vmap` every step runs) written out without a device loop."""
+
+
 def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
-                write_out_linalg: bool | None = None) -> mjx.Data:
+                write_out_linalg: bool | None = None,
+                unroll_line_search: bool | None = None) -> mjx.Data:
     """Advances `data` by `n_frames` physics steps with its control held fixed.
 
     `write_out_linalg` (default: on a GPU) replaces MJX's batched cuSOLVER / cuBLAS calls for
     the mass-matrix and Newton-Hessian factorisations of up to `small_linalg.MAX_SIZE` rows by
     fused array code: halfcheetah's physics per env step at batch 40 on an H200 takes 1.18 ms
     instead of 1.33 (`benchmarks/linalg_lowering.py`). On a CPU the library calls are faster.
+    `unroll_line_search` (default: on a GPU) writes out the Newton solver's line search
+    (`UNROLLED_LINE_SEARCH`): the same arithmetic, without a device loop and the copies of its
+    carry on every trip.
 
     The frames are unrolled: on the GPU every trip of a device loop pauses while the host reads
     its condition, which at these batch sizes costs more than the physics between the pauses
@@ -87,9 +110,11 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
     1.50 ms unrolled).
     The price is compiling `n_frames` copies of `mjx.step`.
     """
-    if write_out_linalg is None:
-        write_out_linalg = jax.default_backend() == "gpu"
+    on_gpu = jax.default_backend() == "gpu"
+    rules = [rule for rule, wanted in ((SMALL_LINALG, write_out_linalg),
+                                       (UNROLLED_LINE_SEARCH, unroll_line_search))
+             if (on_gpu if wanted is None else wanted)]
     step = functools.partial(mjx.step, model)
-    if write_out_linalg:
-        step = write_out_small_linalg(step)
+    if rules:
+        step = rewrite(step, rules)
     return jax.lax.fori_loop(0, n_frames, lambda _, d: step(d), data, unroll=True)

@@ -8,16 +8,15 @@ batch that XLA fuses with its neighbours.
 
 `write_out_small_linalg(fn)` traces `fn` and replaces each Cholesky and triangular-solve
 primitive on matrices up to `MAX_SIZE` rows, in `fn` and in the loops and jitted functions it
-calls, by these versions; everything else is bound as traced.
+calls, by these versions (`jaxpr_rewrite`); everything else is bound as traced.
 """
 
-import functools
-
 import jax
-from jax.extend import core
 import jax.numpy as jnp
 from jax.lax import linalg
 import numpy as np
+
+from pgps_jax.envs.jaxpr_rewrite import Rule, rewrite
 
 MAX_SIZE = 10
 """Largest matrix written out. On an H200 (`benchmarks/linalg_lowering.py`) the written-out
@@ -83,68 +82,20 @@ def triangular_solve(a: jax.Array, b: jax.Array, *, left_side: bool, lower: bool
 _WRITTEN_OUT = {linalg.cholesky_p: cholesky, linalg.triangular_solve_p: triangular_solve}
 
 
+def _is_small(eqn) -> bool:
+    return (eqn.primitive in _WRITTEN_OUT and eqn.invars[0].aval.shape[-1] <= MAX_SIZE
+            and not jnp.issubdtype(eqn.invars[0].aval.dtype, jnp.complexfloating))
+
+
+SMALL_LINALG = Rule(applies=_is_small,
+                    compute=lambda eqn, inputs, params: [
+                        _WRITTEN_OUT[eqn.primitive](*inputs, **eqn.params)])
+"""Cholesky and triangular-solve calls on matrices up to `MAX_SIZE` rows, written out."""
+
+
 def write_out_small_linalg(fn):
     """`fn` (arrays -> arrays) with its small Cholesky factorisations and solves written out.
 
     Non-array inputs must be closed over (MJX's model, whose numpy fields drive tracing).
     """
-    @functools.wraps(fn)
-    def written_out(*args):
-        closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*args)
-        outputs = _evaluate(closed.jaxpr, closed.consts, jax.tree.leaves(args))
-        return jax.tree.unflatten(jax.tree.structure(out_shape), outputs)
-
-    return written_out
-
-
-def _is_target(eqn) -> bool:
-    return (eqn.primitive in _WRITTEN_OUT and eqn.invars[0].aval.shape[-1] <= MAX_SIZE
-            and not jnp.issubdtype(eqn.invars[0].aval.dtype, jnp.complexfloating))
-
-
-@functools.lru_cache(maxsize=1024)
-def _has_target(jaxpr: core.Jaxpr) -> bool:
-    return any(_is_target(eqn) or any(_has_target(sub) for sub in core.jaxprs_in_params(eqn.params))
-               for eqn in jaxpr.eqns)
-
-
-def _rewrite(closed: core.ClosedJaxpr) -> core.ClosedJaxpr:
-    """`closed` re-traced with its targets written out (unchanged if it has none)."""
-    if not _has_target(closed.jaxpr):
-        return closed
-    avals = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
-             for a in closed.in_avals]
-    return jax.make_jaxpr(lambda *xs: _evaluate(closed.jaxpr, closed.consts, xs))(*avals)
-
-
-def _rewrite_param(value):
-    if isinstance(value, core.ClosedJaxpr):
-        return _rewrite(value)
-    if isinstance(value, tuple) and value and all(isinstance(v, core.ClosedJaxpr) for v in value):
-        return tuple(_rewrite(v) for v in value)
-    if isinstance(value, core.Jaxpr) and _has_target(value):
-        raise NotImplementedError("an open sub-jaxpr holds a small Cholesky or solve")
-    return value
-
-
-def _evaluate(jaxpr: core.Jaxpr, consts, args) -> list:
-    """Evaluates `jaxpr` on `args`, writing out targets and rewriting sub-jaxprs that hold some."""
-    values = dict(zip(jaxpr.constvars, consts))
-    values.update(zip(jaxpr.invars, args))
-
-    def read(var):
-        return var.val if isinstance(var, core.Literal) else values[var]
-
-    for eqn in jaxpr.eqns:
-        inputs = [read(v) for v in eqn.invars]
-        if _is_target(eqn):
-            outputs = [_WRITTEN_OUT[eqn.primitive](*inputs, **eqn.params)]
-        else:
-            params = eqn.primitive.get_bind_params(
-                {k: _rewrite_param(v) for k, v in eqn.params.items()})
-            with eqn.ctx.manager:
-                outputs = eqn.primitive.bind(*inputs, **params)
-            if not eqn.primitive.multiple_results:
-                outputs = [outputs]
-        values.update(zip(eqn.outvars, outputs))
-    return [read(v) for v in jaxpr.outvars]
+    return rewrite(fn, [SMALL_LINALG])
