@@ -34,7 +34,7 @@ from env_latency import bare_rollout  # noqa: E402  (sibling benchmark: the phys
 
 from pgps_jax import buffer as replay  # noqa: E402
 from pgps_jax import cem, pgps  # noqa: E402
-from pgps_jax.compile_ahead import compile_ahead, compile_kernels_in_parallel  # noqa: E402
+from pgps_jax.compile_ahead import compile_ahead  # noqa: E402
 from pgps_jax.config import for_task  # noqa: E402
 from pgps_jax.envs import TASKS, make_env  # noqa: E402
 from pgps_jax.rollout import run_episodes  # noqa: E402
@@ -320,7 +320,6 @@ def main():
     parser.add_argument("--out", default="benchmarks/results/throughput.json")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()
-    compile_kernels_in_parallel()       # as the CLI does
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True).stdout.strip()
     result = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit,

@@ -9,24 +9,9 @@ run trains.
 """
 
 from concurrent.futures import Future, ThreadPoolExecutor, wait
-import os
 from typing import Any, Callable, Mapping
 
 Programs = Mapping[str, tuple[Callable, tuple[Any, ...]]]
-
-_PARALLELISM = "--xla_gpu_force_compilation_parallelism"
-
-
-def compile_kernels_in_parallel(threads: int | None = None) -> None:
-    """Lets XLA's GPU compiler build one program's kernels in `threads` threads (default: one
-    per CPU core) instead of one, by adding `--xla_gpu_force_compilation_parallelism` to
-    `XLA_FLAGS`. A value already set there is kept. Takes effect only if called before JAX
-    starts its backends (the first array or device query); no effect on a CPU.
-    """
-    flags = os.environ.get("XLA_FLAGS", "")
-    if _PARALLELISM not in flags:
-        threads = threads or os.cpu_count() or 1
-        os.environ["XLA_FLAGS"] = f"{flags} {_PARALLELISM}={threads}".strip()
 
 
 def compile_ahead(programs: Programs, later: Programs | None = None) -> dict[str, Future]:

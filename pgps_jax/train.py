@@ -23,7 +23,6 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from pgps_jax import run_dir as rundir
-from pgps_jax.compile_ahead import compile_kernels_in_parallel
 from pgps_jax.config import PGPSConfig
 from pgps_jax.run_config import (CONFIG_DIR, IDENTITY_KEYS, RunSettings, UsageError,
                                  check_overrides, differences, explicitly_set, flatten,
@@ -157,7 +156,6 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console entry: check the overrides (unknown keys and tasks), then let Hydra compose."""
-    compile_kernels_in_parallel()
     try:
         check_overrides(sys.argv[1:])
     except UsageError as e:

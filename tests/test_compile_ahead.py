@@ -1,8 +1,5 @@
 """Tests for pgps_jax.compile_ahead: programs compile side by side, `later` ones after them."""
 
-import os
-import subprocess
-import sys
 import threading
 import time
 
@@ -49,37 +46,3 @@ def test_compiled_program_computes_what_jit_does():
     x = jnp.arange(3.0)
     futures = compile_ahead({}, later={"f": (fn, (jax.ShapeDtypeStruct((3,), jnp.float32),))})
     np.testing.assert_array_equal(futures["f"].result()(x), fn(x))
-
-
-_CHILD = """
-import os, sys
-from pgps_jax import train, trainer  # the CLI's modules: importing them starts no backend
-from pgps_jax.envs import make_env
-from pgps_jax.compile_ahead import compile_kernels_in_parallel
-os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
-compile_kernels_in_parallel(int(sys.argv[1]))
-import jax
-print(jax.device_count(), os.environ["XLA_FLAGS"].strip(), sep="|")
-"""
-
-
-def _flags_in_child(xla_flags: str, threads: int) -> tuple[str, str]:
-    """(devices JAX sees, XLA_FLAGS) in a fresh process that imports the CLI's modules, then
-    asks for 2 CPU devices and `threads` compile threads through XLA_FLAGS."""
-    env = {**os.environ, "XLA_FLAGS": xla_flags, "JAX_PLATFORMS": "cpu"}
-    out = subprocess.run([sys.executable, "-c", _CHILD, str(threads)], env=env, check=True,
-                         capture_output=True, text=True).stdout.strip().splitlines()[-1]
-    return tuple(out.split("|"))
-
-
-def test_parallel_compilation_flag_is_added_before_the_backend_starts():
-    devices, flags = _flags_in_child("", 3)
-    assert devices == "2"          # flags set after importing the CLI still take effect
-    assert flags.split() == ["--xla_force_host_platform_device_count=2",
-                             "--xla_gpu_force_compilation_parallelism=3"]
-
-
-def test_parallel_compilation_keeps_a_parallelism_already_set():
-    _, flags = _flags_in_child("--xla_gpu_force_compilation_parallelism=1", 3)
-    assert flags.split() == ["--xla_gpu_force_compilation_parallelism=1",
-                             "--xla_force_host_platform_device_count=2"]

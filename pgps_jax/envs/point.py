@@ -13,9 +13,8 @@ task; it exists so the whole algorithm can be exercised in seconds on a CPU.
 from brax.envs.base import Env, State
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-_GOAL = np.array([1.0, 0.5], np.float32)  # numpy: importing starts no JAX backend
+_GOAL = jnp.array([1.0, 0.5])
 _BOX = 2.0
 
 
