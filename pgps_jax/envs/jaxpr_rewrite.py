@@ -17,6 +17,8 @@ from jax.extend import core
 
 @dataclasses.dataclass(frozen=True)
 class Rule:
+    """What to compute in place of the equations it applies to."""
+
     applies: Callable[[core.JaxprEqn], bool]
     """Whether the rule computes this equation."""
     compute: Callable[..., list]
