@@ -30,25 +30,16 @@ def child() -> dict:
     """Compile and time in this process, under the XLA_FLAGS it was started with."""
     import jax
 
-    from pgps_jax import pgps
-    from pgps_jax.compile_ahead import compile_ahead
     from pgps_jax.envs import make_env
     sys.path.insert(0, os.path.dirname(__file__))
-    from throughput import bench_config  # sibling benchmark; reads --smoke itself
+    from throughput import bench_config, compile_run  # sibling benchmark; reads --smoke itself
 
     config = bench_config("halfcheetah")
     env = make_env("halfcheetah")
     keys = (jax.random.PRNGKey(0), jax.random.PRNGKey(100))
-    abstract = jax.eval_shape(lambda k, e: pgps.init(config, env, k, e), *keys)
-    start = time.perf_counter()
-    play, learn = pgps.make_generation_phases(config, env)
-    futures = compile_ahead({"init": (pgps.make_init(config, env), keys),
-                             "play": (play, (abstract,)),
-                             "learn": (learn, jax.eval_shape(play, abstract))})
-    play, learn = futures["play"].result(), futures["learn"].result()
-    step_s = time.perf_counter() - start
-    init = futures["init"].result()
-    both_s = time.perf_counter() - start
+    compiled, _, step_s, both_s = compile_run(config, env, *keys, vmapped=False,
+                                              end_of_run=False)
+    init, play, learn = (compiled[name].result() for name in ("init", "play", "learn"))
     state = init(*keys)
     state, _ = learn(*play(state))
     times = []

@@ -228,6 +228,40 @@ def components(task: str) -> dict:
 
 
 # ---------------------------------------------------------------------------- full 1M-step run
+def compile_run(config, env, keys, eval_keys, vmapped: bool, end_of_run: bool = True):
+    """A run's programs compiled as the CLI compiles them: `init` and the two phases of a
+    generation side by side, then (with `end_of_run`) `finish_evaluation` and `evaluate` in
+    the background. With `vmapped`, each program is vmapped over the seeds of `keys`.
+    Returns {name: future of its compiled program}, the `time.perf_counter()` at which the
+    compilation began (once `init`'s output shapes were known) and the seconds until the two
+    phases, and until `init` as well, were compiled."""
+    bind = functools.partial
+    if vmapped:
+        def jit(fn, donate=True):
+            return jax.jit(jax.vmap(bind(fn, config, env)), donate_argnums=0 if donate else ())
+        programs = {"init": jit(pgps.init, donate=False),
+                    "play": jit(pgps.play_generation), "learn": jit(pgps.learn_generation),
+                    "finish": jit(pgps.finish_evaluation),
+                    "evaluate": jit(pgps.evaluate, donate=False)}
+    else:
+        play, learn = pgps.make_generation_phases(config, env)
+        programs = {"init": pgps.make_init(config, env), "play": play, "learn": learn,
+                    "finish": pgps.make_finish_evaluation(config, env),
+                    "evaluate": pgps.make_evaluate(config, env)}
+    abstract = jax.eval_shape(programs["init"], keys, eval_keys)
+    start = time.perf_counter()
+    args = {name: (keys, eval_keys) if name == "init" else (abstract,) for name in programs}
+    args["learn"] = jax.eval_shape(programs["play"], abstract)
+    compiled = compile_ahead(
+        {name: (programs[name], args[name]) for name in ("init", "play", "learn")},
+        later={name: (programs[name], args[name]) for name in ("finish", "evaluate")}
+        if end_of_run else None)
+    compiled["play"].result(), compiled["learn"].result()
+    phases_s = time.perf_counter() - start
+    compiled["init"].result()
+    return compiled, start, phases_s, time.perf_counter() - start
+
+
 def full_run(task: str, seeds: int) -> dict:
     """A whole 1M-step run as the CLI runs it, without file I/O: programs compiled ahead of
     time side by side (`init` and the two phases of a generation, then the two end-of-run
@@ -239,35 +273,11 @@ def full_run(task: str, seeds: int) -> dict:
     env = make_env(task)
     keys = jax.random.split(jax.random.PRNGKey(0), seeds)
     eval_keys = jax.vmap(lambda s: jax.random.PRNGKey(s + 100))(jnp.arange(seeds))
-    bind = functools.partial
     if seeds == 1:
-        play, learn = pgps.make_generation_phases(config, env)
-        programs = {"init": pgps.make_init(config, env), "play": play, "learn": learn,
-                    "finish": pgps.make_finish_evaluation(config, env),
-                    "evaluate": pgps.make_evaluate(config, env)}
         keys, eval_keys = keys[0], eval_keys[0]
-        abstract = jax.eval_shape(bind(pgps.init, config, env), keys, eval_keys)
-    else:
-        programs = {
-            "init": jax.jit(jax.vmap(bind(pgps.init, config, env))),
-            "play": jax.jit(jax.vmap(bind(pgps.play_generation, config, env)),
-                            donate_argnums=0),
-            "learn": jax.jit(jax.vmap(bind(pgps.learn_generation, config, env)),
-                             donate_argnums=0),
-            "finish": jax.jit(jax.vmap(bind(pgps.finish_evaluation, config, env)),
-                              donate_argnums=0),
-            "evaluate": jax.jit(jax.vmap(bind(pgps.evaluate, config, env)))}
-        abstract = jax.eval_shape(jax.vmap(bind(pgps.init, config, env)), keys, eval_keys)
-    start = time.perf_counter()
-    args = {name: (keys, eval_keys) if name == "init" else (abstract,) for name in programs}
-    args["learn"] = jax.eval_shape(programs["play"], abstract)
-    compiled = compile_ahead(
-        {name: (programs[name], args[name]) for name in ("init", "play", "learn")},
-        later={name: (programs[name], args[name]) for name in ("finish", "evaluate")})
-    play, learn = compiled["play"].result(), compiled["learn"].result()
-    step_compile_s = time.perf_counter() - start
-    init = compiled["init"].result()
-    compile_s = time.perf_counter() - start      # init and both phases compiled, side by side
+    compiled, start, step_compile_s, compile_s = compile_run(config, env, keys, eval_keys,
+                                                             vmapped=seeds > 1)
+    init, play, learn = (compiled[name].result() for name in ("init", "play", "learn"))
     state = jax.block_until_ready(init(keys, eval_keys))
     init_run_s = time.perf_counter() - start - compile_s
     curve, generations = [], 0

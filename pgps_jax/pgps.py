@@ -230,14 +230,15 @@ def play_generation(config: PGPSConfig, env: Env,
     population_episodes = begin_episodes(env, jax.random.split(reset_key, num_rollout), limits)
     join = functools.partial(jax.tree.map, lambda a, b: jnp.concatenate([a, b]))
     test_slots = jnp.arange(num_rollout + fresh.alive.shape[0]) >= num_rollout
+    per_actor = config.eval_episodes
     relay = Relay(slots=test_slots, episodes=join(population_episodes, fresh),
-                  params=jnp.concatenate([actors, _test_actors(config, ongoing.queued_actors)]),
+                  params=join(actors, evaluation_actors(ongoing.queued_actors, per_actor)),
                   pending=ongoing.queued,
                   hurry=ongoing.queued & (state.total_steps + limits.sum() >= next_eval),
                   ended_returns=jnp.zeros(test_slots.shape))
     batch, transitions, valid, relay = play(
         env, _policy(td3, unflatten),
-        jnp.concatenate([actors, _test_actors(config, ongoing.actors)]),
+        join(actors, evaluation_actors(ongoing.actors, per_actor)),
         join(population_episodes, ongoing.episodes), max(config.t_max, config.eval_steps),
         drive=~test_slots, relay=relay)
     eval_episodes = jax.tree.map(lambda x: x[num_rollout:], batch)
@@ -330,11 +331,6 @@ def _test_episodes(config: PGPSConfig, env: Env, key: jax.Array, steps: int) -> 
     return begin_episodes(env, keys, jnp.full((keys.shape[0],), steps))
 
 
-def _test_actors(config: PGPSConfig, actors: jax.Array) -> jax.Array:
-    """The actors [A, P] of an evaluation, one row per test episode [A·E, P]."""
-    return jnp.repeat(actors, config.eval_episodes, axis=0)
-
-
 def _begin_queued(evaluation: EvaluationState, episodes: EpisodeState) -> EvaluationState:
     """The queued evaluation under way in `episodes` [A·E], nothing queued behind it."""
     return evaluation.replace(episodes=episodes, actors=evaluation.queued_actors,
@@ -351,8 +347,8 @@ def finish_evaluation(config: PGPSConfig, env: Env,
     td3, unflatten = _parts(config, env)
     ongoing = state.evaluation
     episodes, _, _, _ = play(env, _policy(td3, unflatten),
-                             _test_actors(config, ongoing.actors), ongoing.episodes,
-                             config.eval_steps, record=False)
+                             evaluation_actors(ongoing.actors, config.eval_episodes),
+                             ongoing.episodes, config.eval_steps, record=False)
     queued = _begin_queued(ongoing, _test_episodes(config, env, state.eval_key,
                                                    config.eval_steps))
     idle = ongoing.replace(episodes=episodes, active=jnp.asarray(False))
@@ -374,10 +370,15 @@ def evaluation_keys(key: jax.Array, num_actors: int, episodes: int) -> jax.Array
     return jnp.tile(jax.random.split(key, episodes), (num_actors, 1))
 
 
+def evaluation_actors(actors: jax.Array, episodes: int) -> jax.Array:
+    """Actors [A, P] repeated to [A·E, P]: one row per test episode, E per actor."""
+    return jnp.repeat(actors, episodes, axis=0)
+
+
 def evaluation_batch(actors: jax.Array, key: jax.Array,
                      episodes: int) -> tuple[jax.Array, jax.Array]:
     """Actors [A, P] repeated to [A·E, P], and reset keys giving every actor the same E starts."""
-    return (jnp.repeat(actors, episodes, axis=0),
+    return (evaluation_actors(actors, episodes),
             evaluation_keys(key, actors.shape[0], episodes))
 
 
