@@ -26,7 +26,8 @@ from pgps_jax import pgps
 from pgps_jax import run_dir as rundir
 from pgps_jax.config import PGPSConfig
 from pgps_jax.rollout import run_episodes
-from pgps_jax.run_config import RunSettings, UsageError, from_dict
+from pgps_jax.errors import UsageError
+from pgps_jax.run_config import RunSettings, from_dict
 
 POLICIES = pgps.EVALUATED
 """The actors saved in actor_mu.npz, in the order `pgps.evaluate` batches them."""

@@ -41,9 +41,9 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
-from brax.envs.base import Env
 
 from pgps_jax import cem
+from pgps_jax.envs import Env
 from pgps_jax.rollout import Episodes, run_episodes
 
 CSV_COLUMNS = ("value", "discounted_mean", "discounted_std", "return_mean", "return_std",

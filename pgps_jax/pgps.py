@@ -31,11 +31,11 @@ from typing import Callable
 import chex
 import jax
 import jax.numpy as jnp
-from brax.envs.base import Env
 
 from pgps_jax import buffer as replay
 from pgps_jax import cem, qfilter
 from pgps_jax.config import PGPSConfig
+from pgps_jax.envs import Env
 from pgps_jax.networks import actor_flattener, first_q, flatten
 from pgps_jax.rollout import (EpisodeState, Relay, begin_episodes, play, random_warmup,
                               run_episodes)

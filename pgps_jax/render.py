@@ -34,7 +34,7 @@ from typing import Optional, Sequence
 import jax
 import numpy as np
 
-from pgps_jax.run_config import UsageError
+from pgps_jax.errors import UsageError
 
 _GL_HELP = ("MuJoCo's offscreen rendering needs OpenGL without a display: install EGL "
             "(Debian/Ubuntu: apt-get install libegl1) and set MUJOCO_GL=egl, or OSMesa "

@@ -21,9 +21,9 @@ from typing import Callable
 import chex
 import jax
 import jax.numpy as jnp
-from brax.envs.base import Env, State
 
 from pgps_jax.buffer import Transition
+from pgps_jax.envs import Env, State
 
 Policy = Callable[[chex.ArrayTree, jax.Array], jax.Array]  # (params, obs) -> action
 

@@ -13,6 +13,7 @@ import typing
 from typing import Any, Iterable, Mapping, Sequence
 
 from pgps_jax.config import PGPSConfig
+from pgps_jax.errors import UsageError
 
 CONFIG_DIR = pathlib.Path(__file__).resolve().parent.parent / "configs"
 """`configs/` at the repository top level (the package is installed editable)."""
@@ -22,10 +23,6 @@ PGPS_FIELDS = tuple(f.name for f in dataclasses.fields(PGPSConfig))
 IDENTITY_KEYS = ("env.name", "seed", "eval_every") + tuple(f"pgps.{f}" for f in PGPS_FIELDS)
 """Settings that fix a run's trajectory and its evaluation rows: a checkpoint is resumed only
 under the same values. The others (budget, checkpoint period, paths, progress bar) may change."""
-
-
-class UsageError(Exception):
-    """A bad setting or command line; the message says which and what is valid."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -205,7 +202,12 @@ def from_dict(values: Mapping[str, Any]) -> tuple[RunSettings, PGPSConfig]:
     pgps_values = values.get("pgps")
     if not isinstance(pgps_values, Mapping):
         raise UsageError("missing the pgps: node of the configuration")
-    return run_settings(values), pgps_config(pgps_values)
+    run, config = run_settings(values), pgps_config(pgps_values)
+    if run.total_steps <= config.warmup_steps:
+        raise UsageError(f"total_steps={run.total_steps} does not exceed the random warm-up "
+                         f"(pgps.warmup_steps={config.warmup_steps}): no generation would train; "
+                         f"set total_steps above {config.warmup_steps}")
+    return run, config
 
 
 def flatten(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

@@ -11,22 +11,29 @@ A run directory holds
     actor_mu.npz         the μ actor (also the TD3 actor and the elite) of the last checkpoint;
                          at the end of a run, the final μ
     checkpoints/<gen>/   orbax checkpoints (see `pgps_jax.checkpoint`)
+    damaged_checkpoints/ checkpoints that failed verification on resume, set aside
+    .lock                held by the process training here (its pid and host inside)
 
 Everything here is host-side and runs outside jit. Files other than the append-only logs are
-written to a temporary name and renamed, so a reader never sees half a file.
+written to a temporary name and renamed, so a reader never sees half a file. A write that
+fails (disk full, permission lost, I/O error) raises `WriteFailed` naming the file.
 """
 
+import contextlib
 import csv
+import fcntl
 import math
 import os
 import pathlib
+import socket
 import tempfile
+import time
 from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 import yaml
 
-from pgps_jax.run_config import UsageError
+from pgps_jax.errors import UsageError, WriteFailed
 
 CONFIG = "config.yaml"
 METRICS = "metrics.csv"
@@ -36,6 +43,7 @@ TENSORBOARD = "tb"
 CURVE = "learning_curve.png"
 ACTOR = "actor_mu.npz"
 CHECKPOINTS = "checkpoints"
+LOCK = ".lock"
 LOGS = (METRICS, EVAL, EVAL_POLICIES)
 """The append-only CSV logs, truncated to their checkpointed sizes on resume."""
 
@@ -82,8 +90,22 @@ def cell(value: Any) -> str:
     return str(value)
 
 
+@contextlib.contextmanager
+def writing(path: pathlib.Path):
+    """Turns an OSError raised inside into WriteFailed naming `path`."""
+    try:
+        yield
+    except OSError as e:
+        raise WriteFailed(path, e) from None
+
+
 def write_atomic(path: pathlib.Path, data: bytes) -> None:
     """Writes `data` to `path` through a temporary file in the same directory and a rename."""
+    with writing(path):
+        _write_atomic(path, data)
+
+
+def _write_atomic(path: pathlib.Path, data: bytes) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         umask = os.umask(0)
@@ -109,8 +131,9 @@ class CsvLog:
 
     def start(self) -> None:
         """A new file holding only the header."""
-        self._file = open(self.path, "w", newline="")
-        self._file.write(",".join(self.header) + "\n")
+        with writing(self.path):
+            self._file = open(self.path, "w", newline="")
+            self._file.write(",".join(self.header) + "\n")
         self.sync()
 
     def reopen(self, size: int) -> None:
@@ -121,37 +144,73 @@ class CsvLog:
         if actual < size:
             raise UsageError(f"cannot resume: {self.path} has {actual} bytes, fewer than the "
                              f"{size} it had at the checkpoint")
-        with open(self.path, "r+b") as f:
-            f.truncate(size)
+        with writing(self.path):
+            with open(self.path, "r+b") as f:
+                f.truncate(size)
         with open(self.path, newline="") as f:
             header = next(csv.reader(f), None)
         if header != self.header:
             raise UsageError(f"cannot resume: {self.path} has the columns {header}, "
                              f"expected {self.header}")
-        self._file = open(self.path, "a", newline="")
+        with writing(self.path):
+            self._file = open(self.path, "a", newline="")
 
     def write(self, cells: Sequence[Any]) -> None:
-        self._file.write(",".join(cell(c) for c in cells) + "\n")
+        with writing(self.path):
+            self._file.write(",".join(cell(c) for c in cells) + "\n")
 
     def sync(self) -> None:
         """Flush to the OS and to disk (before a checkpoint records the size)."""
-        self._file.flush()
-        os.fsync(self._file.fileno())
+        with writing(self.path):
+            self._file.flush()
+            os.fsync(self._file.fileno())
 
     def size(self) -> int:
-        self._file.flush()
+        with writing(self.path):
+            self._file.flush()
         return self.path.stat().st_size
 
     def rows(self) -> list[dict]:
         """The data rows written so far."""
-        self._file.flush()
+        with writing(self.path):
+            self._file.flush()
         with open(self.path, newline="") as f:
             return list(csv.DictReader(f))
 
     def close(self) -> None:
         if self._file is not None:
+            file, self._file = self._file, None
+            with writing(self.path):
+                file.close()
+
+
+class RunLock:
+    """An exclusive lock on a run directory (flock on `<run>/.lock`), held until `release` or
+    the process's end, SIGKILL included."""
+
+    def __init__(self, path: pathlib.Path):
+        self.path = path
+        with writing(path):
+            self._file = open(path, "a+")
+        try:
+            fcntl.flock(self._file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self._file.seek(0)
+            holder = self._file.read().strip() or "another process"
             self._file.close()
-            self._file = None
+            raise UsageError(f"{path.parent} is in use by {holder}; wait for it to finish or "
+                             "stop it, or choose another run_dir") from None
+        with writing(path):
+            self._file.seek(0)
+            self._file.truncate()
+            self._file.write(f"process {os.getpid()} on {socket.gethostname()}, started "
+                             f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+            self._file.flush()
+
+    def release(self) -> None:
+        if not self._file.closed:
+            fcntl.flock(self._file, fcntl.LOCK_UN)
+            self._file.close()
 
 
 class RunDir:
@@ -177,6 +236,10 @@ class RunDir:
         except OSError as e:
             raise UsageError(f"cannot write the run directory {self.path}: "
                              f"{e.strerror or e}") from None
+
+    def lock(self) -> RunLock:
+        """Locks the directory for this process; UsageError naming the holder if it is taken."""
+        return RunLock(self.path / LOCK)
 
     def has_checkpoint(self) -> bool:
         """Whether a complete checkpoint exists (orbax's temporary directories do not count)."""
@@ -261,15 +324,19 @@ class TensorBoard:
 
     def __init__(self, directory: pathlib.Path, purge_step: Optional[int] = None):
         from tensorboardX import SummaryWriter
-        self._writer = SummaryWriter(str(directory), purge_step=purge_step)
+        self.directory = directory
+        with writing(directory):
+            self._writer = SummaryWriter(str(directory), purge_step=purge_step)
 
     def scalars(self, values: Mapping[str, Any], step: int) -> None:
-        for tag, value in values.items():
-            value = float(np.asarray(value))
-            self._writer.add_scalar(tag, value, global_step=step)
+        with writing(self.directory):
+            for tag, value in values.items():
+                self._writer.add_scalar(tag, float(np.asarray(value)), global_step=step)
 
     def flush(self) -> None:
-        self._writer.flush()
+        with writing(self.directory):
+            self._writer.flush()
 
     def close(self) -> None:
-        self._writer.close()
+        with writing(self.directory):
+            self._writer.close()

@@ -24,11 +24,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from pgps_jax import run_dir as rundir
 from pgps_jax.config import PGPSConfig
-from pgps_jax.run_config import (CONFIG_DIR, IDENTITY_KEYS, RunSettings, UsageError,
-                                 check_overrides, differences, explicitly_set, flatten,
-                                 from_dict, override_keys, register_structured_configs)
-
-EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+from pgps_jax.errors import (EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, UsageError, print_error,
+                             report)
+from pgps_jax.run_config import (CONFIG_DIR, IDENTITY_KEYS, RunSettings, check_overrides,
+                                 differences, explicitly_set, flatten, from_dict, override_keys,
+                                 register_structured_configs)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,8 +40,11 @@ class Plan:
     resolved: dict
     """The resolved configuration (saved in the run directory and in every checkpoint)."""
     directory: rundir.RunDir
+    lock: rundir.RunLock
+    """Held from planning to the end of training: no other process trains in `directory`."""
     resume_step: Optional[int]
-    """The checkpoint (generation) to continue from, or None for a new run."""
+    """The newest checkpoint (generation) whose metadata reads, or None for a new run; the
+    trainer continues from it, or from an older one if it fails verification."""
 
 
 def _set(values: dict, dotted: str, value: Any) -> None:
@@ -53,12 +56,13 @@ def _set(values: dict, dotted: str, value: Any) -> None:
 
 
 def _checkpointed_config(directory: rundir.RunDir) -> tuple[int, dict]:
-    """(latest checkpoint's generation, the resolved configuration saved with it)."""
+    """(newest readable checkpoint's generation, the resolved configuration saved with it);
+    checkpoints whose metadata cannot be read are set aside."""
     from pgps_jax.checkpoint import Checkpoints
     checkpoints = Checkpoints(directory.checkpoints)
     try:
-        step = checkpoints.latest_step()
-        return step, checkpoints.meta(step)["config"]
+        step, meta = checkpoints.latest_meta()
+        return step, meta["config"]
     finally:
         checkpoints.close()
 
@@ -77,23 +81,36 @@ def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
     if run.resume is False:
         directory = rundir.RunDir(run.run_dir)
         directory.ensure_writable()
+        lock = directory.lock()
         if directory.holds_run():
+            lock.release()
             raise UsageError(
                 f"{directory.path} already holds a run; continue it with resume=true, or "
                 f"choose another directory with run_dir=... (or output_dir=...)")
-        return Plan(run, config, values, directory, None)
+        return Plan(run, config, values, directory, lock, None)
 
     by_path = run.resume is not True
     directory = rundir.RunDir(run.resume if by_path else run.run_dir)
     if by_path and not directory.path.is_dir():
         raise UsageError(f"resume={run.resume}: no such run directory")
     directory.ensure_writable()
+    lock = directory.lock()
+    try:
+        return _plan_resume(run, config, values, overrides, directory, lock, by_path)
+    except BaseException:
+        lock.release()
+        raise
+
+
+def _plan_resume(run: RunSettings, config: PGPSConfig, values: dict, overrides: Sequence[str],
+                 directory: rundir.RunDir, lock: rundir.RunLock, by_path: bool) -> Plan:
+    """`plan` for resume=true or resume=<dir>, once the directory is locked."""
     if not directory.has_checkpoint():
         if by_path:
             raise UsageError(f"resume={run.resume}: {directory.checkpoints} holds no checkpoint")
         print(f"resume=true: no checkpoint in {directory.path}; starting a new run there",
               file=sys.stderr)
-        return Plan(run, config, values, directory, None)
+        return Plan(run, config, values, directory, lock, None)
 
     step, saved = _checkpointed_config(directory)
     effective = values
@@ -112,29 +129,25 @@ def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
             + "\nResume with the checkpoint's settings, or start a new run in another run_dir.")
     run, config = from_dict(effective)
     run = dataclasses.replace(run, run_dir=str(directory.path))
-    return Plan(run, config, effective, directory, step)
-
-
-def _error(message: str) -> None:
-    print(f"error: {message}", file=sys.stderr)
+    return Plan(run, config, effective, directory, lock, step)
 
 
 def run(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> int:
     """Plans and trains from a resolved configuration dict; returns the exit status."""
-    try:
+    def body() -> int:
         p = plan(values, overrides)
         from pgps_jax import trainer
         try:
             outcome = trainer.train(p)
-        except trainer.NonFiniteError as e:
-            _error(str(e))
-            return EXIT_FAILED
+        finally:
+            p.lock.release()
         return EXIT_OK if outcome == "done" else EXIT_INTERRUPTED
-    except UsageError as e:
-        _error(str(e))
-        return EXIT_USAGE
+
+    try:
+        return report(body)
     except KeyboardInterrupt:
-        _error("aborted (Ctrl-C) without writing a checkpoint; any written before are intact")
+        print_error("aborted (Ctrl-C) without writing a checkpoint; any written before are "
+                    "intact")
         return EXIT_INTERRUPTED
 
 
@@ -147,7 +160,7 @@ def _hydra_main(cfg: DictConfig) -> None:
     try:
         values = OmegaConf.to_container(cfg, resolve=True)
     except Exception as e:  # an interpolation that cannot be resolved
-        _error(f"cannot resolve the configuration: {e}")
+        print_error(f"cannot resolve the configuration: {e}")
         sys.exit(EXIT_USAGE)
     code = run(values, list(HydraConfig.get().overrides.task))
     if code != EXIT_OK:
@@ -156,11 +169,9 @@ def _hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console entry: check the overrides (unknown keys and tasks), then let Hydra compose."""
-    try:
-        check_overrides(sys.argv[1:])
-    except UsageError as e:
-        _error(str(e))
-        sys.exit(EXIT_USAGE)
+    code = report(lambda: check_overrides(sys.argv[1:]) or EXIT_OK)
+    if code != EXIT_OK:
+        sys.exit(code)
     _hydra_main()
 
 

@@ -30,7 +30,7 @@ from pgps_jax import run_dir as rundir
 from pgps_jax.checkpoint import Checkpoints
 from pgps_jax.compile_ahead import compile_ahead
 from pgps_jax.networks import flatten as flatten_params
-from pgps_jax.run_config import UsageError
+from pgps_jax.errors import RunFailed, UsageError, WriteFailed
 
 if TYPE_CHECKING:
     from pgps_jax.train import Plan
@@ -39,7 +39,7 @@ if TYPE_CHECKING:
 _PRIORITY_METRICS = ("td3/critic_loss", "td3/actor_loss", "td3/beta")
 
 
-class NonFiniteError(Exception):
+class NonFiniteError(RunFailed):
     """A generation produced a NaN/inf metric; the run stops without checkpointing it."""
 
 
@@ -145,15 +145,16 @@ class Trainer:
             self.total = int(state.total_steps)
             self.bar.update(min(self.total, self.run.total_steps))
             return state
-        state, meta = self.checkpoints.restore(self.p.resume_step, abstract)
+        step, state, meta = self.checkpoints.restore_latest(abstract)
         for name, log in self.logs.items():
             log.reopen(meta["logs"][name])
         self.generation, self.total = meta["generation"], meta["total_steps"]
         self.elapsed_before = meta["elapsed_s"]
-        self.last_saved = self.p.resume_step
+        self.last_saved = step
         self.tensorboard = rundir.TensorBoard(self.dir / rundir.TENSORBOARD,
                                               purge_step=self.total + 1)
         self.eval_rows = self.policies_log.rows()
+        self.save_actors(state)  # those of the checkpoint resumed, if a later one was set aside
         self._open_bar()
         tqdm.write(f"resumed {self.dir.path} at generation {self.generation} "
                    f"({self.total:,} env steps)")
@@ -190,13 +191,10 @@ class Trainer:
                 and _defined(k, m)}, "perf/steps_per_s": steps_per_s}, self.total)
         bad = first_non_finite(m)
         if bad is not None:
-            where = (f"the last good checkpoint is generation {self.last_saved} in "
-                     f"{self.dir.checkpoints}" if self.last_saved is not None
-                     else "no checkpoint had been written yet")
             raise NonFiniteError(
                 f"generation {self.generation} ({self.total:,} env steps) produced a "
                 f"non-finite {bad} = {np.asarray(m[bad])}; stopping. This state was not "
-                f"checkpointed; {where}.")
+                f"checkpointed; {self.kept()}.")
         if bool(m["eval/done"]):
             self._record_evaluation(int(m["eval/step"]), m)
         budget = self.run.total_steps
@@ -250,6 +248,12 @@ class Trainer:
                    f"{float(e['eval/elite_mean']):10.2f}")
 
     # --- checkpoints ------------------------------------------------------------------
+    def kept(self) -> str:
+        """What a run that stops now leaves to resume from."""
+        return (f"the last good checkpoint is generation {self.last_saved} in "
+                f"{self.dir.checkpoints}" if self.last_saved is not None
+                else "no checkpoint had been written yet")
+
     def save(self, state):
         """A checkpoint of the state with the logs' sizes; then the μ actor file."""
         for log in self.logs.values():
@@ -261,6 +265,10 @@ class Trainer:
                 "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         self.checkpoints.save(self.generation, state, meta)
         self.last_saved = self.generation
+        self.save_actors(state)
+
+    def save_actors(self, state):
+        """The μ, TD3 and elite actors of `state` as flat vectors in actor_mu.npz."""
         actors = jax.device_get({"mu": state.cem.mean, "elite": state.cem.elite,
                                  "td3": flatten_params(state.td3.actor)})
         rundir.save_actors(self.dir / rundir.ACTOR, self.generation, self.total, **actors)
@@ -277,7 +285,8 @@ class Trainer:
 
 def train(p: "Plan") -> str:
     """Runs a Plan to the end of its budget or a stop request: returns "done" or the signal's
-    name. Raises NonFiniteError (nothing checkpointed after the last good generation)."""
+    name. Raises NonFiniteError (nothing checkpointed after the last good generation) or
+    RunFailed when a file cannot be written (the last good checkpoint kept)."""
     from pgps_jax.envs import make_env
     try:
         env = make_env(p.run.env)
@@ -285,25 +294,43 @@ def train(p: "Plan") -> str:
         raise UsageError(str(e)) from None
     p.directory.write_config(p.resolved)
     trainer = Trainer(p, env)
+    failed = None
     try:
-        with StopRequest() as stop:
-            state = trainer.start()
-            while trainer.total < p.run.total_steps and stop.requested is None:
-                state = trainer.step(state)
-            if trainer.last_saved != trainer.generation:
-                trainer.save(state)
-        trainer.bar.close()
-        if stop.requested is not None and trainer.total < p.run.total_steps:
-            print(f"{stop.requested}: stopped at generation {trainer.generation} "
-                  f"({trainer.total:,} env steps); checkpoint written to "
-                  f"{trainer.dir.checkpoints}. Continue with resume=true "
-                  f"(or resume={trainer.dir.path}).", file=sys.stderr)
-            return stop.requested
-        last = trainer.eval_rows[-1] if trainer.eval_rows else None
-        summary = (f"final μ return {float(last['mu_mean']):.2f} ± {float(last['mu_std']):.2f}"
-                   if last else "no evaluation")
-        print(f"done: {trainer.total:,} env steps in {trainer.generation} generations, "
-              f"{trainer.elapsed():.0f} s of training; {summary}; outputs in {trainer.dir.path}")
-        return "done"
+        return _run(trainer, p)
+    except WriteFailed as e:
+        failed = e
+        raise _write_failure(e, trainer) from None
     finally:
-        trainer.close()
+        try:
+            trainer.close()
+        except WriteFailed as e:
+            if failed is None:  # otherwise the write that failed first is the one reported
+                raise _write_failure(e, trainer) from None
+
+
+def _write_failure(error: WriteFailed, trainer: Trainer) -> RunFailed:
+    return RunFailed(f"{error}; stopping. {trainer.kept().capitalize()}; once the file can be "
+                     f"written, continue with resume=true.")
+
+
+def _run(trainer: Trainer, p: "Plan") -> str:
+    """`train`'s loop, its final checkpoint and its summary line."""
+    with StopRequest() as stop:
+        state = trainer.start()
+        while trainer.total < p.run.total_steps and stop.requested is None:
+            state = trainer.step(state)
+        if trainer.last_saved != trainer.generation:
+            trainer.save(state)
+    trainer.bar.close()
+    if stop.requested is not None and trainer.total < p.run.total_steps:
+        print(f"{stop.requested}: stopped at generation {trainer.generation} "
+              f"({trainer.total:,} env steps); checkpoint written to "
+              f"{trainer.dir.checkpoints}. Continue with resume=true "
+              f"(or resume={trainer.dir.path}).", file=sys.stderr)
+        return stop.requested
+    last = trainer.eval_rows[-1] if trainer.eval_rows else None
+    summary = (f"final μ return {float(last['mu_mean']):.2f} ± {float(last['mu_std']):.2f}"
+               if last else "no evaluation")
+    print(f"done: {trainer.total:,} env steps in {trainer.generation} generations, "
+          f"{trainer.elapsed():.0f} s of training; {summary}; outputs in {trainer.dir.path}")
+    return "done"

@@ -12,7 +12,7 @@ from pgps_jax import run_dir as rundir
 from pgps_jax.checkpoint import Checkpoints
 from pgps_jax.config import PGPSConfig
 from pgps_jax.envs import make_env
-from pgps_jax.run_config import UsageError
+from pgps_jax.errors import UsageError
 
 TINY = PGPSConfig(pop_size=4, top_k=2, actor_hidden=(8,), critic_hidden=(8,), buffer_size=400,
                   warmup_steps=40, t_init=10, t_max=20, t_interval=100, eval_steps=10,

@@ -6,7 +6,8 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from pgps_jax.config import for_task
-from pgps_jax.run_config import (CONFIG_DIR, IDENTITY_KEYS, PGPS_FIELDS, UsageError,
+from pgps_jax.errors import UsageError
+from pgps_jax.run_config import (CONFIG_DIR, IDENTITY_KEYS, PGPS_FIELDS,
                                  check_overrides, differences, env_choices, explicitly_set,
                                  from_dict, override_keys, pgps_config,
                                  register_structured_configs)

@@ -13,6 +13,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from pgps_jax import pgps, train
+from pgps_jax.errors import EXIT_FAILED
 from pgps_jax import run_dir as rundir
 from pgps_jax.run_config import CONFIG_DIR, from_dict
 
@@ -208,7 +209,7 @@ def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(
     overrides = tiny("checkpoint_every=1", f"run_dir={run_dir}")
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         values = OmegaConf.to_container(compose("config", overrides=overrides), resolve=True)
-    assert train.run(values, overrides) == train.EXIT_FAILED
+    assert train.run(values, overrides) == EXIT_FAILED
     err = capsys.readouterr().err
     assert "generation 3" in err and "td3/critic_loss" in err
     assert "last good checkpoint is generation 2" in err

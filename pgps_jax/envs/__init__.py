@@ -4,7 +4,9 @@
 solver settings (fields of `physics.Physics`).
 """
 
-from brax.envs.base import Env
+from pgps_jax.envs import quiet_mjx  # noqa: F401  (before brax, which imports mujoco.mjx)
+
+from brax.envs.base import Env, State
 
 from pgps_jax.envs.ant import Ant
 from pgps_jax.envs.half_cheetah import HalfCheetah

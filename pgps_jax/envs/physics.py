@@ -118,4 +118,4 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
     step = functools.partial(mjx.step, model)
     if rules:
         step = rewrite(step, rules)
-    return jax.lax.fori_loop(0, n_frames, lambda _, d: step(d), data, unroll=True)
+    return jax.lax.fori_loop(0, n_frames, lambda _, d: step(d), data, unroll=on_gpu)
