@@ -26,7 +26,7 @@ from pgps_jax import pgps
 from pgps_jax import run_dir as rundir
 from pgps_jax.config import PGPSConfig
 from pgps_jax.rollout import run_episodes
-from pgps_jax.errors import UsageError
+from pgps_jax.errors import EXIT_OK, UsageError, report
 from pgps_jax.run_config import RunSettings, from_dict
 
 POLICIES = pgps.EVALUATED
@@ -89,17 +89,17 @@ def evaluate_actors(config: PGPSConfig, env, actors: Mapping[str, np.ndarray], k
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    return report(lambda: _evaluate(argv))
+
+
+def _evaluate(argv: Sequence[str]) -> int:
     from pgps_jax.envs import make_env
-    try:
-        args = parse_args(argv, {"run": str, "episodes": int, "seed": int, "out": str},
-                          required=("run",))
-        settings, config, saved = load_run(args["run"])
-        if args.get("episodes", 1) < 1:
-            raise UsageError("episodes must be >= 1")
-        env = make_env(settings.env)
-    except (UsageError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    args = parse_args(argv, {"run": str, "episodes": int, "seed": int, "out": str},
+                      required=("run",))
+    settings, config, saved = load_run(args["run"])
+    if args.get("episodes", 1) < 1:
+        raise UsageError("episodes must be >= 1")
+    env = make_env(settings.env)
     key_seed = args.get("seed", settings.seed + 100)
     results = evaluate_actors(config, env, {p: saved[p] for p in POLICIES},
                               jax.random.PRNGKey(key_seed), args.get("episodes"))
@@ -116,7 +116,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         text = ",".join(header) + "\n" + ",".join(rundir.cell(c) for c in line) + "\n"
         rundir.write_atomic(pathlib.Path(args["out"]).absolute(), text.encode())
         print(f"wrote {args['out']}")
-    return 0
+    return EXIT_OK
 
 
 if __name__ == "__main__":

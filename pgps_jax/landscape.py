@@ -34,7 +34,9 @@ import functools
 import logging
 import math
 import pathlib
+import sys
 import time
+import typing
 from typing import Callable, Optional, Sequence, Union
 
 import chex
@@ -44,7 +46,9 @@ import numpy as np
 
 from pgps_jax import cem
 from pgps_jax.envs import Env
+from pgps_jax.errors import EXIT_OK, UsageError, report
 from pgps_jax.rollout import Episodes, run_episodes
+from pgps_jax.run_config import coerce, parse_overrides
 
 CSV_COLUMNS = ("value", "discounted_mean", "discounted_std", "return_mean", "return_std",
                "unstable_fraction")
@@ -139,7 +143,7 @@ class SweepConfig:
 
 def _require(ok: bool, field: str, value, valid: str) -> None:
     if not ok:
-        raise ValueError(f"landscape config {field}={value!r} is invalid: must be {valid}")
+        raise UsageError(f"landscape config {field}={value!r} is invalid: must be {valid}")
 
 
 def resolve_params(spec: Optional[Sequence[Union[int, Sequence[int]]]], shape: tuple,
@@ -147,7 +151,7 @@ def resolve_params(spec: Optional[Sequence[Union[int, Sequence[int]]]], shape: t
     """Flat (row-major) indices of the entries of W [obs, act] to sweep.
 
     `spec` items are flat indices or (row, col) pairs; None picks `num_params` indices evenly
-    spread over the flattened matrix (first and last included). Raises ValueError if an index
+    spread over the flattened matrix (first and last included). Raises UsageError if an index
     lies outside W.
     """
     rows, cols = shape
@@ -284,11 +288,11 @@ def load_theta(path: Union[str, pathlib.Path], shape: tuple) -> np.ndarray:
     """(host) W [obs, act] from an npz written by `save_theta`; checks it fits the task."""
     with np.load(path) as data:
         if "theta" not in data:
-            raise ValueError(f"params_file={str(path)!r} has no 'theta' array "
+            raise UsageError(f"params_file={str(path)!r} has no 'theta' array "
                              f"(found {sorted(data.files)}); write it with save_theta")
         theta = np.asarray(data["theta"], np.float32)
     if theta.shape != tuple(shape):
-        raise ValueError(f"params_file={str(path)!r} holds W of shape {theta.shape}, but this "
+        raise UsageError(f"params_file={str(path)!r} holds W of shape {theta.shape}, but this "
                          f"task's linear policy needs [obs, act] = {tuple(shape)}")
     return theta
 
@@ -518,31 +522,54 @@ def run(env: Env, env_name: str, train_config: TrainConfig, sweep_config: SweepC
 # Command line
 # --------------------------------------------------------------------------------------------
 
+CONFIG_DIR = pathlib.Path(__file__).resolve().parent.parent / "configs"
+_SECTIONS = {"cem": TrainConfig, "sweep": SweepConfig}
+_TOP = {"seed": int, "threshold": float, "params_file": str, "steps": int, "gamma": float,
+        "output_dir": str}
+
+
+def _fields(section: str) -> list[str]:
+    return [f.name for f in dataclasses.fields(_SECTIONS[section])
+            if f.name not in ("steps", "threshold")]
+
+
+def _valid_settings_text() -> str:
+    return ("valid settings: env=<task>, " + ", ".join(_TOP) + ", "
+            + ", ".join(f"{s}.{f}" for s in _SECTIONS for f in _fields(s)))
+
+
+def check_overrides(args: Sequence[str]) -> None:
+    """Checks the command line before Hydra composes it: unknown keys and tasks."""
+    from pgps_jax.envs import TASKS
+    for o in parse_overrides(args):
+        key = o.key_or_group
+        if key.startswith("hydra"):
+            continue
+        if key == "env":
+            if o.value() not in TASKS:
+                raise UsageError(f"unknown env {o.value()!r}; choices: {', '.join(TASKS)}")
+            continue
+        section, _, field = key.partition(".")
+        if key in _TOP or (section in _SECTIONS and field in _fields(section)):
+            continue
+        raise UsageError(f"unknown setting {key!r}; {_valid_settings_text()}")
+
+
 def configs_from_dict(cfg: dict) -> tuple[TrainConfig, SweepConfig]:
-    """Validated dataclasses from the `configs/landscape.yaml` layout (a plain dict)."""
-    c, s = cfg.get("cem", {}), cfg.get("sweep", {})
-    train = TrainConfig(threshold=float(cfg["threshold"]), steps=int(cfg["steps"]),
-                        **{k: c[k] for k in ("pop_size", "top_k", "sigma_init", "sigma_limit",
-                                             "sigma_decay", "divide_by_k", "max_generations",
-                                             "eval_episodes") if k in c})
-    sweep = SweepConfig(steps=int(cfg["steps"]), gamma=float(cfg["gamma"]),
-                        **{k: s[k] for k in ("num_params", "low", "high", "relative", "points",
-                                             "seeds", "flat_tol", "flat_atol") if k in s})
+    """Validated dataclasses from the `configs/landscape.yaml` layout (a plain dict); a
+    UsageError names a value of the wrong type or out of range."""
+    steps, gamma = coerce("steps", cfg["steps"], int), coerce("gamma", cfg["gamma"], float)
+    threshold = coerce("threshold", cfg["threshold"], float)
+    kwargs = {}
+    for section, kind in _SECTIONS.items():
+        hints = typing.get_type_hints(kind)
+        given = cfg.get(section) or {}
+        kwargs[section] = {k: v if k == "params" else coerce(f"{section}.{k}", v, hints[k])
+                           for k, v in given.items() if k in _fields(section)}
+    train = TrainConfig(threshold=threshold, steps=steps, **kwargs["cem"])
+    sweep = SweepConfig(steps=steps, gamma=gamma,
+                        **{k: v for k, v in kwargs["sweep"].items() if k != "params"})
     return train, sweep
-
-
-def _task_name(cfg) -> str:
-    """The `env=` choice: Hydra's config-group choice, else `env` or `env.name`."""
-    from hydra.core.hydra_config import HydraConfig
-    choice = HydraConfig.get().runtime.choices.get("env")
-    if choice:
-        return choice
-    env = cfg.get("env")
-    if isinstance(env, str):
-        return env
-    if isinstance(env, dict) and env.get("name"):
-        return env["name"]
-    raise ValueError("no task given: run with env=<task>, e.g. env=swimmer")
 
 
 def _main(cfg) -> None:
@@ -552,23 +579,32 @@ def _main(cfg) -> None:
     from omegaconf import OmegaConf
     from pgps_jax.envs import make_env
 
-    plain = OmegaConf.to_container(cfg, resolve=True)
-    train, sweep = configs_from_dict(plain)
-    name = _task_name(plain)
-    out_dir = plain.get("output_dir") or HydraConfig.get().runtime.output_dir
-    params = plain.get("sweep", {}).get("params")
-    params_file = plain.get("params_file")
-    if params_file:
-        params_file = hydra.utils.to_absolute_path(params_file)
-    run(make_env(name), name, train, sweep, out_dir, jax.random.PRNGKey(int(plain["seed"])),
-        params=params, params_file=params_file, log=logging.getLogger(__name__).info)
+    def body() -> int:
+        plain = OmegaConf.to_container(cfg, resolve=True)
+        train, sweep = configs_from_dict(plain)
+        name = HydraConfig.get().runtime.choices["env"]
+        out_dir = plain.get("output_dir") or HydraConfig.get().runtime.output_dir
+        params_file = plain.get("params_file")
+        if params_file:
+            params_file = hydra.utils.to_absolute_path(params_file)
+        run(make_env(name), name, train, sweep, out_dir,
+            jax.random.PRNGKey(coerce("seed", plain["seed"], int)),
+            params=plain.get("sweep", {}).get("params"), params_file=params_file,
+            log=logging.getLogger(__name__).info)
+        return EXIT_OK
+
+    code = report(body)
+    if code != EXIT_OK:
+        sys.exit(code)
 
 
 def main() -> None:
-    """Parses the command line with Hydra (configs/landscape.yaml) and runs `_main`."""
+    """Checks the command line, then runs `_main` under Hydra (configs/landscape.yaml)."""
     import hydra
-    config_dir = str(pathlib.Path(__file__).resolve().parent.parent / "configs")
-    hydra.main(config_path=config_dir, config_name="landscape", version_base=None)(_main)()
+    code = report(lambda: check_overrides(sys.argv[1:]) or EXIT_OK)
+    if code != EXIT_OK:
+        sys.exit(code)
+    hydra.main(config_path=str(CONFIG_DIR), config_name="landscape", version_base=None)(_main)()
 
 
 if __name__ == "__main__":

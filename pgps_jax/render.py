@@ -34,7 +34,7 @@ from typing import Optional, Sequence
 import jax
 import numpy as np
 
-from pgps_jax.errors import UsageError
+from pgps_jax.errors import EXIT_OK, UsageError, report
 
 _GL_HELP = ("MuJoCo's offscreen rendering needs OpenGL without a display: install EGL "
             "(Debian/Ubuntu: apt-get install libegl1) and set MUJOCO_GL=egl, or OSMesa "
@@ -115,53 +115,49 @@ def write_video(path: pathlib.Path, frames: Sequence[np.ndarray], fps: float) ->
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    try:
-        _import_mujoco()  # first: everything below imports mujoco (brax, the envs)
-    except UsageError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    return report(lambda: _render(argv))
+
+
+def _render(argv: Sequence[str]) -> int:
+    _import_mujoco()  # first: everything below imports mujoco (brax, the envs)
     from pgps_jax.evaluate import load_run, parse_args, POLICIES
-    try:
-        args = parse_args(argv, {"run": str, "out": str, "policy": str, "steps": int,
-                                 "width": int, "height": int, "camera": str, "max_fps": float},
-                          required=("run",))
-        settings, config, saved = load_run(args["run"])
-        policy = args.get("policy", "mu")
-        if policy not in POLICIES:
-            raise UsageError(f"policy={policy!r}: choose one of {', '.join(POLICIES)}")
-        steps = args.get("steps", config.eval_steps)
-        if steps < 1:
-            raise UsageError("steps must be >= 1")
-        default_suffix = ".mp4" if importlib.util.find_spec("imageio_ffmpeg") else ".gif"
-        out = pathlib.Path(args.get("out", pathlib.Path(args["run"]) / f"episode{default_suffix}"))
-        if out.suffix.lower() not in (".mp4", ".gif"):
-            raise UsageError(f"out={out}: the file name must end in .mp4 or .gif")
-        if out.suffix.lower() == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
-            raise UsageError("writing an MP4 needs imageio-ffmpeg (pip install imageio-ffmpeg); "
-                             "or choose out=<name>.gif")
-        from pgps_jax.envs import make_env
-        env = make_env(settings.env)
-        if getattr(env, "mj_model", None) is None:
-            raise UsageError(f"env {settings.env!r} has no MuJoCo model to render; "
-                             f"render a run of halfcheetah, hopper, walker2d, ant or swimmer")
-        key = jax.random.split(jax.random.PRNGKey(settings.seed + 100), config.eval_episodes)[0]
-        qpos, rewards, dones = jax.device_get(
-            _episode(config, env, jax.numpy.asarray(saved[policy]), key, steps))
-        ended = np.flatnonzero(dones > 0)
-        length = int(ended[0]) + 1 if ended.size else steps
-        max_fps = args.get("max_fps", 50.0)
-        skip = max(1, math.ceil((1.0 / env.dt) / max_fps))
-        frames = render_frames(env.mj_model, qpos[:length + 1:skip], args.get("width", 480),
-                               args.get("height", 360), args.get("camera"))
-        write_video(out, frames, fps=1.0 / (env.dt * skip))
-    except (UsageError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    args = parse_args(argv, {"run": str, "out": str, "policy": str, "steps": int,
+                             "width": int, "height": int, "camera": str, "max_fps": float},
+                      required=("run",))
+    settings, config, saved = load_run(args["run"])
+    policy = args.get("policy", "mu")
+    if policy not in POLICIES:
+        raise UsageError(f"policy={policy!r}: choose one of {', '.join(POLICIES)}")
+    steps = args.get("steps", config.eval_steps)
+    if steps < 1:
+        raise UsageError("steps must be >= 1")
+    default_suffix = ".mp4" if importlib.util.find_spec("imageio_ffmpeg") else ".gif"
+    out = pathlib.Path(args.get("out", pathlib.Path(args["run"]) / f"episode{default_suffix}"))
+    if out.suffix.lower() not in (".mp4", ".gif"):
+        raise UsageError(f"out={out}: the file name must end in .mp4 or .gif")
+    if out.suffix.lower() == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise UsageError("writing an MP4 needs imageio-ffmpeg (pip install imageio-ffmpeg); "
+                         "or choose out=<name>.gif")
+    from pgps_jax.envs import make_env
+    env = make_env(settings.env)
+    if getattr(env, "mj_model", None) is None:
+        raise UsageError(f"env {settings.env!r} has no MuJoCo model to render; "
+                         f"render a run of halfcheetah, hopper, walker2d, ant or swimmer")
+    key = jax.random.split(jax.random.PRNGKey(settings.seed + 100), config.eval_episodes)[0]
+    qpos, rewards, dones = jax.device_get(
+        _episode(config, env, jax.numpy.asarray(saved[policy]), key, steps))
+    ended = np.flatnonzero(dones > 0)
+    length = int(ended[0]) + 1 if ended.size else steps
+    max_fps = args.get("max_fps", 50.0)
+    skip = max(1, math.ceil((1.0 / env.dt) / max_fps))
+    frames = render_frames(env.mj_model, qpos[:length + 1:skip], args.get("width", 480),
+                           args.get("height", 360), args.get("camera"))
+    write_video(out, frames, fps=1.0 / (env.dt * skip))
     print(f"wrote {out}: {settings.env}, {policy} of generation {saved['generation']}, "
           f"{length} steps{' (terminated)' if ended.size else ''}, return "
           f"{float(rewards[:length].sum()):.2f}; {len(frames)} frames at "
           f"{1.0 / (env.dt * skip):.1f} fps")
-    return 0
+    return EXIT_OK
 
 
 if __name__ == "__main__":

@@ -83,20 +83,25 @@ def _valid_settings_text() -> str:
             + ", pgps.<field> (run with --cfg job to see them all)")
 
 
+def parse_overrides(args: Sequence[str]) -> list:
+    """Hydra's parse of the `key=value` arguments (flags and their values left out), or a
+    UsageError saying what cannot be parsed."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import OverrideParseException
+
+    candidates = [a for a in args if "=" in a and not a.startswith("-")]
+    try:
+        return OverridesParser.create().parse_overrides(candidates)
+    except OverrideParseException as e:
+        raise UsageError(f"cannot parse the command line: {e}") from None
+
+
 def check_overrides(args: Sequence[str]) -> None:
     """Checks command-line overrides before Hydra composes them: unknown keys and tasks.
 
     Hydra would reject an unknown key too, but without saying what is valid.
     """
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import OverrideParseException
-
-    candidates = [a for a in args if "=" in a and not a.startswith("-")]  # not flags/values
-    try:
-        overrides = OverridesParser.create().parse_overrides(candidates)
-    except OverrideParseException as e:
-        raise UsageError(f"cannot parse the command line: {e}") from None
-    for o in overrides:
+    for o in parse_overrides(args):
         key = o.key_or_group
         if key.startswith("hydra") or key in _RUN_KEYS:
             continue
@@ -122,7 +127,7 @@ def check_overrides(args: Sequence[str]) -> None:
         raise UsageError(f"unknown setting {key!r}; {_valid_settings_text()}")
 
 
-def _coerce(key: str, value: Any, kind: Any) -> Any:
+def coerce(key: str, value: Any, kind: Any) -> Any:
     """`value` as the dataclass field type `kind`, or a UsageError naming `key`."""
     if kind is bool:
         if isinstance(value, bool):
@@ -140,7 +145,7 @@ def _coerce(key: str, value: Any, kind: Any) -> Any:
         raise UsageError(f"{key} must be a number, got {value!r}")
     if typing.get_origin(kind) is tuple:
         if isinstance(value, (list, tuple)):
-            return tuple(_coerce(f"{key}[{i}]", v, int) for i, v in enumerate(value))
+            return tuple(coerce(f"{key}[{i}]", v, int) for i, v in enumerate(value))
         raise UsageError(f"{key} must be a list of layer widths like [400,300], got {value!r}")
     if kind is str:
         if isinstance(value, str) and value:
@@ -156,7 +161,7 @@ def pgps_config(values: Mapping[str, Any]) -> PGPSConfig:
         raise UsageError(f"unknown setting pgps.{unknown[0]}; pgps.<field> must be one of: "
                          f"{', '.join(PGPS_FIELDS)}")
     hints = typing.get_type_hints(PGPSConfig)
-    kwargs = {name: _coerce(f"pgps.{name}", value, hints[name]) for name, value in values.items()}
+    kwargs = {name: coerce(f"pgps.{name}", value, hints[name]) for name, value in values.items()}
     try:
         return PGPSConfig(**kwargs)
     except ValueError as e:
@@ -185,7 +190,7 @@ def run_settings(values: Mapping[str, Any]) -> RunSettings:
                 raise UsageError(f"resume must be true, false or a run directory, got {value!r}")
             kwargs[key] = value
         else:
-            kwargs[key] = _coerce(key, value, hints[key])
+            kwargs[key] = coerce(key, value, hints[key])
     for key, low in (("seed", 0), ("total_steps", 1), ("eval_every", 1),
                      ("checkpoint_every", 1), ("keep_checkpoints", 1)):
         if kwargs[key] < low:

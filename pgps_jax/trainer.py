@@ -154,7 +154,9 @@ class Trainer:
         self.tensorboard = rundir.TensorBoard(self.dir / rundir.TENSORBOARD,
                                               purge_step=self.total + 1)
         self.eval_rows = self.policies_log.rows()
-        self.save_actors(state)  # those of the checkpoint resumed, if a later one was set aside
+        actors = self.dir / rundir.ACTOR
+        if not actors.exists() or rundir.load_actors(actors)["generation"] != self.generation:
+            self.save_actors(state)  # a later checkpoint's were saved, then set aside
         self._open_bar()
         tqdm.write(f"resumed {self.dir.path} at generation {self.generation} "
                    f"({self.total:,} env steps)")

@@ -10,6 +10,9 @@ import numpy as np
 import pytest
 
 from pgps_jax import landscape
+from pgps_jax.errors import UsageError
+
+from train_cli import read_csv, run
 
 STEPS = 20
 GAMMA = 0.9
@@ -120,16 +123,16 @@ def test_analyse_curve_on_a_step_and_a_line():
 def test_resolve_params_default_spread_pairs_and_errors():
     assert landscape.resolve_params(None, (8, 2), 6) == [0, 3, 6, 9, 12, 15]
     assert landscape.resolve_params([5, [3, 1]], (8, 2), 6) == [5, 7]
-    with pytest.raises(ValueError, match="sweep.params"):
+    with pytest.raises(UsageError, match="sweep.params"):
         landscape.resolve_params([16], (8, 2), 6)
-    with pytest.raises(ValueError, match="sweep.params"):
+    with pytest.raises(UsageError, match="sweep.params"):
         landscape.resolve_params([[8, 0]], (8, 2), 6)
 
 
 def test_config_validation_names_the_field():
-    with pytest.raises(ValueError, match="sweep.low"):
+    with pytest.raises(UsageError, match="sweep.low"):
         landscape.SweepConfig(low=1.0, high=-1.0)
-    with pytest.raises(ValueError, match="cem.top_k"):
+    with pytest.raises(UsageError, match="cem.top_k"):
         landscape.TrainConfig(pop_size=4, top_k=5)
 
 
@@ -187,5 +190,35 @@ def test_run_writes_csvs_figure_params_and_reloads(tmp_path):
 
 def test_load_theta_rejects_a_wrong_shape(tmp_path):
     np.savez(tmp_path / "w.npz", theta=np.zeros((3, 1)))
-    with pytest.raises(ValueError, match="shape"):
+    with pytest.raises(UsageError, match="shape"):
         landscape.load_theta(tmp_path / "w.npz", (2, 1))
+
+
+@pytest.mark.parametrize("args, words", [
+    (["env=cheetahh"], ["unknown env 'cheetahh'", "halfcheetah, hopper, walker2d, ant, swimmer"]),
+    (["sweep.points=-3"], ["sweep.points=-3 is invalid", "an integer >= 2"]),
+    (["sweep.points=many"], ["sweep.points must be an integer, got 'many'"]),
+    (["foo=1"], ["unknown setting 'foo'", "sweep.points"]),
+    (["cem.top_k=9", "cem.pop_size=4"], ["cem.top_k=9 is invalid"]),
+])
+def test_cli_bad_input_is_one_message_and_status_2(cache, tmp_path, args, words):
+    result = run("landscape", args + [f"output_dir={tmp_path / 'out'}"], cache, tmp_path)
+    assert result.returncode == 2, result.stderr[-2000:]
+    for word in words:
+        assert word in result.stderr
+    assert "Traceback" not in result.stderr and result.stderr.count("error:") == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_on_a_mujoco_task(cache, tmp_path):
+    out = tmp_path / "out"
+    result = run("landscape", ["env=hopper", "steps=20", "threshold=-1e9", "cem.pop_size=4",
+                               "cem.top_k=2", "cem.eval_episodes=1", "sweep.num_params=2",
+                               "sweep.points=3", "sweep.seeds=2", f"output_dir={out}"],
+                 cache, tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    _, rows = read_csv(out / "analysis.csv")
+    assert len(rows) == 2
+    assert sorted(p.name for p in out.glob("sweep_*.csv")) == sorted(
+        f"sweep_{r['row']}_{r['col']}.csv" for r in rows)
+    assert (out / "landscape.png").stat().st_size > 0 and (out / "theta.npz").exists()

@@ -123,9 +123,11 @@ def test_the_two_phases_compute_one_generation_step():
 
 def test_population_layout_and_counters():
     state = pgps.make_init(SMALL, ENV)(jax.random.PRNGKey(0))
-    elite_before = state.cem.elite
-    step = pgps.make_generation_step(SMALL, ENV, donate=False)
-    new, metrics = step(state)
+    play, learn = pgps.make_generation_phases(SMALL, ENV)
+    elite_before = np.asarray(state.cem.elite)
+    state, played = play(state)
+    population = np.asarray(played.population)
+    new, metrics = learn(state, played)
     assert int(new.generation) == 1
     assert int(new.total_steps) == 100 + int(metrics["gen/interaction_steps"])
     assert int(new.buffer.size) == int(new.total_steps)
@@ -133,8 +135,14 @@ def test_population_layout_and_counters():
     # F = 1: the TD3 actor was injected in the last slot and its return is reported
     assert bool(metrics["td3/in_population"])
     assert float(metrics["td3/return"]) == float(metrics["pop/return_3"])
-    # elitism: the elite played in slot 0 (deterministic policy, deterministic env dynamics)
-    assert elite_before.shape == new.cem.elite.shape
+    # elitism: the last elite plays in slot 0; the new elite is the best actor that played
+    np.testing.assert_array_equal(population[0], elite_before)
+    returns = [float(metrics[f"pop/return_{i}"]) for i in range(SMALL.pop_size)]
+    np.testing.assert_array_equal(np.asarray(new.cem.elite), population[int(np.argmax(returns))])
+    assert float(metrics["cem/elite_return"]) == max(returns)
+    _, next_played = play(new)
+    np.testing.assert_array_equal(np.asarray(next_played.population[0]),
+                                  population[int(np.argmax(returns))])
 
 
 def test_base_model_never_injects_or_guides():

@@ -1,31 +1,19 @@
-"""Interrupted runs continue exactly: SIGKILL or Ctrl-C mid-run, resume, and the finished
-run's eval.csv equals an uninterrupted run's (same seed, same machine)."""
+"""Interrupted runs continue exactly, on hopper (real MJX physics, episodes that terminate
+early): Ctrl-C mid-run, resume by directory, and the finished run's logs equal an
+uninterrupted run's (same seed, same machine). SIGKILL at random moments: test_faults."""
 
 import signal
 
-import pytest
-
 from pgps_jax import run_dir as rundir
 
+from conftest import reduced
 from train_cli import (checkpoint_steps, data_rows, deterministic, leftovers, read_csv, run,
-                       start, tiny, wait_until)
+                       start, wait_until)
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    return tmp_path_factory.mktemp("jax_cache")
-
-
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory, cache):
-    work = tmp_path_factory.mktemp("work")
-    run_dir = work / "ref"
-    result = run("train", tiny(f"run_dir={run_dir}"), cache, work)
-    assert result.returncode == 0, result.stderr[-3000:]
-    return run_dir
-
-
-def _assert_same_run(run_dir, reference):
+def assert_same_run(run_dir, reference):
+    """eval.csv, eval_policies.csv and metrics.csv's deterministic columns equal the
+    reference's; three checkpoints are kept and no temporary file is left."""
     assert (run_dir / rundir.EVAL).read_bytes() == (reference / rundir.EVAL).read_bytes()
     assert ((run_dir / rundir.EVAL_POLICIES).read_bytes()
             == (reference / rundir.EVAL_POLICIES).read_bytes())
@@ -36,40 +24,20 @@ def _assert_same_run(run_dir, reference):
     assert len(checkpoint_steps(run_dir)) == 3 and leftovers(run_dir) == []
 
 
-def _interrupted(run_dir, reference) -> bool:
-    _, rows = read_csv(run_dir / rundir.METRICS)
-    _, ref_rows = read_csv(reference / rundir.METRICS)
-    return len(rows) < len(ref_rows)
-
-
-def test_sigkill_then_resume_equals_an_uninterrupted_run(reference, cache, tmp_path):
-    run_dir = tmp_path / "killed"
-    process = start("train", tiny(f"run_dir={run_dir}"), cache, tmp_path, tmp_path / "log")
-    # kill once a checkpoint exists and the run has moved on past it
-    wait_until(lambda: checkpoint_steps(run_dir) and data_rows(run_dir / rundir.METRICS)
-               >= max(checkpoint_steps(run_dir)) + 2, process)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
-    assert process.returncode == -signal.SIGKILL
-    assert _interrupted(run_dir, reference)
-    killed_at = max(checkpoint_steps(run_dir))
-    result = run("train", tiny(f"run_dir={run_dir}", "resume=true"), cache, tmp_path)
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert f"resumed {run_dir} at generation {killed_at}" in result.stdout
-    _assert_same_run(run_dir, reference)
-
-
-def test_ctrl_c_writes_a_checkpoint_then_resume_by_directory(reference, cache, tmp_path):
+def test_ctrl_c_writes_a_checkpoint_then_resume_by_directory(task_runs, cache, tmp_path):
+    reference, _ = task_runs("hopper")
     run_dir = tmp_path / "interrupted"
-    process = start("train", tiny(f"run_dir={run_dir}"), cache, tmp_path, tmp_path / "log")
-    wait_until(lambda: data_rows(run_dir / rundir.METRICS) >= 5, process)
+    process = start("train", reduced("hopper", f"run_dir={run_dir}"), cache, tmp_path,
+                    tmp_path / "log")
+    wait_until(lambda: data_rows(run_dir / rundir.METRICS) >= 3, process)
     process.send_signal(signal.SIGINT)
     process.wait(timeout=300)
     log = (tmp_path / "log").read_text()
     assert process.returncode == 130, log[-3000:]
     assert "SIGINT: stopped at generation" in log and "checkpoint written" in log
-    assert _interrupted(run_dir, reference)
     _, rows = read_csv(run_dir / rundir.METRICS)
+    _, ref_rows = read_csv(reference / rundir.METRICS)
+    assert len(rows) < len(ref_rows)
     stopped_at = int(rows[-1]["generation"])
     assert max(checkpoint_steps(run_dir)) == stopped_at  # the state at the stop, not older
     assert rundir.load_actors(run_dir / rundir.ACTOR)["generation"] == stopped_at
@@ -78,12 +46,15 @@ def test_ctrl_c_writes_a_checkpoint_then_resume_by_directory(reference, cache, t
     result = run("train", [f"resume={run_dir}", "progress=false"], cache, tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     assert f"at generation {stopped_at}" in result.stdout
-    _assert_same_run(run_dir, reference)
+    assert_same_run(run_dir, reference)
 
 
-def test_resuming_a_finished_run_changes_nothing(reference, cache, tmp_path):
-    before = {p: p.read_bytes() for p in (reference / rundir.EVAL, reference / rundir.METRICS)}
-    result = run("train", tiny(f"run_dir={reference}", "resume=true"), cache, tmp_path)
+def test_resuming_a_finished_run_changes_nothing(task_runs, cache, tmp_path):
+    reference, _ = task_runs("hopper")
+    before = {p: p.read_bytes() for p in (reference / rundir.EVAL, reference / rundir.METRICS,
+                                          reference / rundir.ACTOR)}
+    result = run("train", reduced("hopper", f"run_dir={reference}", "resume=true"), cache,
+                 tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "done:" in result.stdout
     assert {p: p.read_bytes() for p in before} == before

@@ -36,9 +36,11 @@ def cli_env(cache_dir: pathlib.Path) -> dict:
 
 
 def run(module: str, args, cache_dir: pathlib.Path, cwd: pathlib.Path,
-        timeout: float = 600) -> subprocess.CompletedProcess:
+        timeout: float = 600, **environ: str) -> subprocess.CompletedProcess:
+    """`python -m pgps_jax.<module> <args>`, with `environ` added to its environment."""
     return subprocess.run([sys.executable, "-m", f"pgps_jax.{module}", *args], cwd=cwd,
-                          env=cli_env(cache_dir), capture_output=True, text=True, timeout=timeout)
+                          env={**cli_env(cache_dir), **environ}, capture_output=True, text=True,
+                          timeout=timeout)
 
 
 def start(module: str, args, cache_dir: pathlib.Path, cwd: pathlib.Path,
@@ -72,8 +74,10 @@ def leftovers(run_dir: pathlib.Path) -> list[str]:
     return [str(p) for p in run_dir.rglob("*") if "tmp" in p.name.lower()]
 
 
-def wait_until(predicate, process: subprocess.Popen, timeout: float = 300) -> None:
-    """Polls `predicate` until true; fails if the process ends or time runs out first."""
+def wait_until(predicate, process: subprocess.Popen, timeout: float = 300,
+               poll: float = 0.02) -> None:
+    """Polls `predicate` every `poll` s until true; fails if the process ends or time runs out
+    first."""
     deadline = time.monotonic() + timeout
     while not predicate():
         if process.poll() is not None:
@@ -81,7 +85,7 @@ def wait_until(predicate, process: subprocess.Popen, timeout: float = 300) -> No
         if time.monotonic() > deadline:
             process.kill()
             raise AssertionError("timed out waiting for the process")
-        time.sleep(0.02)
+        time.sleep(poll)
 
 
 def data_rows(path: pathlib.Path) -> int:

@@ -4,9 +4,11 @@
 solver settings (fields of `physics.Physics`).
 """
 
-from pgps_jax.envs import quiet_mjx  # noqa: F401  (before brax, which imports mujoco.mjx)
+import importlib
 
-from brax.envs.base import Env, State
+importlib.import_module("pgps_jax.envs.quiet_mjx")  # before brax, which imports mujoco.mjx
+
+from brax.envs.base import Env, State  # the Env contract, re-exported
 
 from pgps_jax.envs.ant import Ant
 from pgps_jax.envs.half_cheetah import HalfCheetah
@@ -23,6 +25,8 @@ _REGISTRY = {
     "swimmer": Swimmer,
     "point": PointMass,
 }
+__all__ = ["Env", "State", "TASKS", "make_env"]
+
 TASKS = ("halfcheetah", "hopper", "walker2d", "ant", "swimmer")
 """The MuJoCo tasks (the registry also holds "point")."""
 

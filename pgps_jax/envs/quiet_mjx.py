@@ -6,12 +6,13 @@ here uses, does not need it. Any other line printed during the import still reac
 """
 
 import contextlib
+import importlib
 import io
 
 _WARP_ABSENT = ("Failed to import warp:", "Failed to import mujoco_warp:")
 
 with contextlib.redirect_stdout(io.StringIO()) as _printed:
-    from mujoco import mjx  # noqa: F401
+    importlib.import_module("mujoco.mjx")
 
 for _line in _printed.getvalue().splitlines():
     if not _line.startswith(_WARP_ABSENT):

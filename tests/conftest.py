@@ -1,0 +1,50 @@
+"""Fixtures shared by the test modules: one compilation cache for every CLI subprocess of the
+session, and one reduced training run per MuJoCo task, made on first use."""
+
+import pathlib
+
+import pytest
+
+from train_cli import run
+
+REDUCED = ("seed=1", "total_steps=600", "eval_every=200", "checkpoint_every=2",
+           "progress=false", "pgps.pop_size=2", "pgps.top_k=1", "pgps.actor_hidden=[16]",
+           "pgps.critic_hidden=[16]", "pgps.batch_size=16", "pgps.buffer_size=2000",
+           "pgps.warmup_steps=200", "pgps.t_init=50", "pgps.t_max=100", "pgps.t_interval=200",
+           "pgps.q_filter_start=400", "pgps.sample_ratio=4", "pgps.ss1_size=8",
+           "pgps.ss2_size=16", "pgps.eval_episodes=2", "pgps.eval_steps=50")
+"""A PGPS of 2 actors with small networks, episodes of 50-100 steps, a 200-step warm-up and
+a 600-step budget: a few generations on real MJX physics in seconds once compiled; the
+Q-filter starts at 400 steps, so it runs too."""
+
+
+def reduced(task: str, *overrides: str) -> list[str]:
+    """`env=<task>` with REDUCED, `overrides` replacing settings of the same key."""
+    merged = {a.split("=", 1)[0]: a for a in (f"env={task}", *REDUCED)}
+    merged.update({a.split("=", 1)[0]: a for a in overrides})
+    return list(merged.values())
+
+
+@pytest.fixture(scope="session")
+def cache(tmp_path_factory) -> pathlib.Path:
+    """JAX's persistent compilation cache of every CLI subprocess of the session: a program
+    that one test compiled loads from it in the next."""
+    return tmp_path_factory.mktemp("jax_cache")
+
+
+@pytest.fixture(scope="session")
+def task_runs(tmp_path_factory, cache):
+    """`task_runs(task)`: (run directory, CompletedProcess) of an uninterrupted reduced run of
+    `task`, trained on first use."""
+    made = {}
+
+    def get(task: str):
+        if task not in made:
+            work = tmp_path_factory.mktemp(f"run_{task}")
+            run_dir = work / "run"
+            result = run("train", reduced(task, f"run_dir={run_dir}"), cache, work)
+            assert result.returncode == 0, result.stderr[-3000:]
+            made[task] = run_dir, result
+        return made[task]
+
+    return get
