@@ -115,7 +115,12 @@ class Checkpoints:
             raise WriteFailed(self.directory / str(step), e) from None
 
     def meta(self, step: int) -> dict:
-        """The metadata of checkpoint `step`; DamagedCheckpoint if it cannot be read."""
+        """The metadata that was saved with checkpoint `step`; DamagedCheckpoint if it cannot be
+        read."""
+        return _without_integrity(self._stored_meta(step))
+
+    def _stored_meta(self, step: int) -> dict:
+        """The metadata of checkpoint `step` with its layout and checksum."""
         try:
             restored = self._manager.restore(
                 step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
@@ -133,7 +138,7 @@ class Checkpoints:
         configuration or version), DamagedCheckpoint if its files are unreadable or its
         contents fail the checksum.
         """
-        meta = self.meta(step)
+        meta = self._stored_meta(step)
         expected = layout(abstract_state)
         saved = meta["layout"]
         if [{k: e[k] for k in ("path", "shape", "dtype")} for e in saved] != expected:
@@ -157,7 +162,7 @@ class Checkpoints:
                  else leaf for leaf, entry in zip(leaves, saved)]
         state = [jax.device_put(leaf, getattr(a, "sharding", None))
                  for leaf, a in zip(state, abstract_leaves)]
-        return jax.tree.unflatten(treedef, state), meta
+        return jax.tree.unflatten(treedef, state), _without_integrity(meta)
 
     def set_aside(self, step: int, reason: str) -> pathlib.Path:
         """Moves checkpoint `step` into `<run>/damaged_checkpoints/` and warns; returns where."""
@@ -235,6 +240,13 @@ def _wait_until_quiet(fd: int) -> None:
     while time.monotonic() < deadline and os.fstat(fd).st_size != size:
         size = os.fstat(fd).st_size
         time.sleep(_QUIET_S)
+
+
+_INTEGRITY = ("layout", "checksum")
+
+
+def _without_integrity(meta: dict) -> dict:
+    return {k: v for k, v in meta.items() if k not in _INTEGRITY}
 
 
 def _stored_shape(entry: dict) -> tuple[tuple, np.dtype]:

@@ -16,7 +16,7 @@ out (write μ's result as a CSV in the reference format: ,Step,Mean,Std,Reward1.
 import functools
 import pathlib
 import sys
-from typing import Callable, Mapping, Optional, Sequence
+from typing import Mapping, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -27,39 +27,10 @@ from pgps_jax import run_dir as rundir
 from pgps_jax.config import PGPSConfig
 from pgps_jax.rollout import run_episodes
 from pgps_jax.errors import EXIT_OK, UsageError, report
-from pgps_jax.run_config import RunSettings, from_dict
+from pgps_jax.tool_args import load_run, parse_args
 
 POLICIES = pgps.EVALUATED
 """The actors saved in actor_mu.npz, in the order `pgps.evaluate` batches them."""
-
-
-def parse_args(argv: Sequence[str], types: Mapping[str, Callable],
-               required: Sequence[str] = ()) -> dict:
-    """`key=value` arguments -> {key: types[key](value)}; UsageError naming a bad one."""
-    values = {}
-    for arg in argv:
-        key, sep, text = arg.partition("=")
-        if not sep or key not in types:
-            raise UsageError(f"unknown argument {arg!r}; valid: "
-                             + " ".join(f"{k}=..." for k in types))
-        try:
-            values[key] = types[key](text)
-        except ValueError:
-            raise UsageError(f"{key}={text!r} is invalid: expected {types[key].__name__}") from None
-    for key in required:
-        if key not in values:
-            raise UsageError(f"missing argument {key}=...; valid: "
-                             + " ".join(f"{k}=..." for k in types))
-    return values
-
-
-def load_run(path: str) -> tuple[RunSettings, PGPSConfig, dict]:
-    """(settings, config, saved actors) of the run directory `path`."""
-    directory = rundir.RunDir(path)
-    if not directory.path.is_dir():
-        raise UsageError(f"run={path}: no such run directory")
-    settings, config = from_dict(directory.read_config())
-    return settings, config, rundir.load_actors(directory / rundir.ACTOR)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 4, 5))

@@ -34,7 +34,9 @@ from typing import Optional, Sequence
 import jax
 import numpy as np
 
+from pgps_jax.config import TASK_NAMES
 from pgps_jax.errors import EXIT_OK, UsageError, report
+from pgps_jax.tool_args import load_run, parse_args
 
 _GL_HELP = ("MuJoCo's offscreen rendering needs OpenGL without a display: install EGL "
             "(Debian/Ubuntu: apt-get install libegl1) and set MUJOCO_GL=egl, or OSMesa "
@@ -119,15 +121,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 def _render(argv: Sequence[str]) -> int:
-    _import_mujoco()  # first: everything below imports mujoco (brax, the envs)
-    from pgps_jax.evaluate import load_run, parse_args, POLICIES
     args = parse_args(argv, {"run": str, "out": str, "policy": str, "steps": int,
                              "width": int, "height": int, "camera": str, "max_fps": float},
                       required=("run",))
     settings, config, saved = load_run(args["run"])
     policy = args.get("policy", "mu")
-    if policy not in POLICIES:
-        raise UsageError(f"policy={policy!r}: choose one of {', '.join(POLICIES)}")
+    policies = [k for k in saved if k not in ("generation", "env_steps")]
+    if policy not in policies:
+        raise UsageError(f"policy={policy!r}: choose one of {', '.join(policies)}")
     steps = args.get("steps", config.eval_steps)
     if steps < 1:
         raise UsageError("steps must be >= 1")
@@ -138,11 +139,12 @@ def _render(argv: Sequence[str]) -> int:
     if out.suffix.lower() == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
         raise UsageError("writing an MP4 needs imageio-ffmpeg (pip install imageio-ffmpeg); "
                          "or choose out=<name>.gif")
+    if settings.env not in TASK_NAMES:
+        raise UsageError(f"env {settings.env!r} has no MuJoCo model to render; "
+                         f"render a run of {', '.join(TASK_NAMES)}")
+    _import_mujoco()  # before everything that imports mujoco (brax, the envs)
     from pgps_jax.envs import make_env
     env = make_env(settings.env)
-    if getattr(env, "mj_model", None) is None:
-        raise UsageError(f"env {settings.env!r} has no MuJoCo model to render; "
-                         f"render a run of halfcheetah, hopper, walker2d, ant or swimmer")
     key = jax.random.split(jax.random.PRNGKey(settings.seed + 100), config.eval_episodes)[0]
     qpos, rewards, dones = jax.device_get(
         _episode(config, env, jax.numpy.asarray(saved[policy]), key, steps))

@@ -14,7 +14,6 @@ two phases, then the two end-of-run programs in the background while the run tra
 Nothing here runs inside jit. The run directory's contents are listed in `pgps_jax.run_dir`.
 """
 
-import functools
 import shutil
 import signal
 import sys
@@ -124,14 +123,14 @@ class Trainer:
         """
         seed_key, eval_key = (jax.random.PRNGKey(self.run.seed),
                               jax.random.PRNGKey(self.run.seed + 100))
-        abstract = jax.eval_shape(functools.partial(pgps.init, self.config, self.env),
-                                  seed_key, eval_key)
         c, env = self.config, self.env
+        init = pgps.make_init(c, env)
+        abstract = jax.eval_shape(init, seed_key, eval_key)  # traced once: `lower` reuses it
         play, learn = pgps.make_generation_phases(c, env)
         programs = {"play": (play, (abstract,)),
                     "learn": (learn, jax.eval_shape(play, abstract))}
         if self.p.resume_step is None:
-            programs["init"] = (pgps.make_init(c, env), (seed_key, eval_key))
+            programs["init"] = (init, (seed_key, eval_key))
         self.programs = compile_ahead(programs, later={
             "finish_evaluation": (pgps.make_finish_evaluation(c, env), (abstract,)),
             "evaluate": (pgps.make_evaluate(c, env), (abstract,))})

@@ -1,19 +1,30 @@
 """Fixtures shared by the test modules: one compilation cache for every CLI subprocess of the
 session, and one reduced training run per MuJoCo task, made on first use."""
 
+import os
 import pathlib
 
-import pytest
+# Tests check behaviour, not speed: XLA compiles the (large) MJX programs with fewer
+# optimisation passes, in this process and in the CLI subprocesses, which inherit it.
+os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""),
+                                    "--xla_backend_optimization_level=0",
+                                    "--xla_llvm_disable_expensive_passes=true"]).strip()
 
-from train_cli import run
+import jax  # noqa: E402  (after XLA_FLAGS)
+import pytest  # noqa: E402
+
+from train_cli import run  # noqa: E402
+
+# The maths tests compare with float32 numpy; a GPU would otherwise multiply in TF32.
+jax.config.update("jax_default_matmul_precision", "highest")
 
 REDUCED = ("seed=1", "total_steps=600", "eval_every=200", "checkpoint_every=2",
            "progress=false", "pgps.pop_size=2", "pgps.top_k=1", "pgps.actor_hidden=[16]",
            "pgps.critic_hidden=[16]", "pgps.batch_size=16", "pgps.buffer_size=2000",
-           "pgps.warmup_steps=200", "pgps.t_init=50", "pgps.t_max=100", "pgps.t_interval=200",
+           "pgps.warmup_steps=200", "pgps.t_init=20", "pgps.t_max=40", "pgps.t_interval=400",
            "pgps.q_filter_start=400", "pgps.sample_ratio=4", "pgps.ss1_size=8",
            "pgps.ss2_size=16", "pgps.eval_episodes=2", "pgps.eval_steps=50")
-"""A PGPS of 2 actors with small networks, episodes of 50-100 steps, a 200-step warm-up and
+"""A PGPS of 2 actors with small networks, episodes of 20-40 steps, a 200-step warm-up and
 a 600-step budget: a few generations on real MJX physics in seconds once compiled; the
 Q-filter starts at 400 steps, so it runs too."""
 

@@ -52,8 +52,9 @@ def _step(env, unroll_line_search):
 
 
 def test_unrolled_line_search_is_the_same_physics_without_device_loops():
-    """halfcheetah: MJX's line search is a 4-step scan; unrolled, the env step compiles to
-    straight-line code and gives the same states."""
+    """halfcheetah: MJX's line search is a 4-step scan; unrolled, the env step compiles with
+    no device loop but the frames' (a loop on the CPU, unrolled on a GPU) and gives the same
+    states."""
     env = make_env("halfcheetah")
     state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 3))
     controls = jax.random.uniform(jax.random.PRNGKey(1), (3, env.action_size), minval=-1,
@@ -64,7 +65,8 @@ def test_unrolled_line_search_is_the_same_physics_without_device_loops():
 
     def loops(fn):
         return len(re.findall(r"\bwhile\(", fn.lower(data).compile().as_text()))
-    assert loops(looped) > 0 and loops(unrolled) == 0
+    frame_loops = 0 if jax.default_backend() == "gpu" else 1
+    assert loops(looped) > frame_loops and loops(unrolled) == frame_loops
     a, b = data, data
     for _ in range(5):
         a, b = looped(a), unrolled(b)
