@@ -8,6 +8,7 @@ import dataclasses
 from typing import Tuple
 
 TASK_NAMES = ("swimmer", "halfcheetah", "hopper", "walker2d", "ant")
+FELL_BEHIND_RULES = ("mean_minus_std", "mean")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,6 +78,14 @@ class PGPSConfig:
     """D_target of the β rule (eq. 3)."""
     ss2_size: int = 512
     """SS_2: states drawn to measure D before each guided block."""
+    fell_behind_rule: str = "mean_minus_std"
+    """When the TD3 actor fell behind (EA→PG): "mean_minus_std", Return_TD3 < mean − std of
+    the generation's returns (Algorithm 1); "mean", Return_TD3 < mean (what the authors'
+    code computes: its std is taken of a single return)."""
+    target_actor_from_elite: bool = False
+    """Set the TD3 target actor π' to the elite before each generation's updates, as the
+    authors' code does ("the critic is trained through the target actor indirectly guided by
+    the elite actor", Section 4.2); the paper's algorithms do not show it."""
 
     # --- Q-critic filtering (Algorithm 2) ---
     q_filter_start: int = 150_000
@@ -191,6 +200,8 @@ def _validate(c: PGPSConfig) -> None:
         _require(getattr(c, name) >= 0, name, getattr(c, name), ">= 0")
     _require(c.beta_min <= c.beta_init <= c.beta_max, "beta_init", c.beta_init,
              f"in [beta_min={c.beta_min}, beta_max={c.beta_max}]")
+    _require(c.fell_behind_rule in FELL_BEHIND_RULES, "fell_behind_rule", c.fell_behind_rule,
+             f"one of {', '.join(FELL_BEHIND_RULES)}")
     _require(c.t_init <= c.t_max, "t_init", c.t_init, f"<= t_max={c.t_max}")
     _require(c.num_candidates >= c.num_elite_filtered, "sample_ratio", c.sample_ratio,
              f"large enough that SR·N = {c.num_candidates} candidates >= the "

@@ -77,9 +77,14 @@ def episode_limit(total_steps: jax.Array, config: PGPSConfig) -> jax.Array:
     return jnp.minimum(grown, config.t_max).astype(jnp.int32)
 
 
-def fell_behind(td3_return: jax.Array, population_returns: jax.Array) -> jax.Array:
-    """The TD3 actor lags: Return_TD3 < mean − std of the generation's returns (Algorithm 1)."""
-    return td3_return < jnp.mean(population_returns) - jnp.std(population_returns)
+def fell_behind(td3_return: jax.Array, population_returns: jax.Array,
+                rule: str = "mean_minus_std") -> jax.Array:
+    """The TD3 actor lags: Return_TD3 < mean − std of the generation's returns (Algorithm 1),
+    or < mean with rule="mean" (the authors' code)."""
+    threshold = jnp.mean(population_returns)
+    if rule == "mean_minus_std":
+        threshold = threshold - jnp.std(population_returns)
+    return td3_return < threshold
 
 
 def _policy(td3: TD3, unflatten: Callable) -> Callable:
@@ -277,15 +282,19 @@ def learn_generation(config: PGPSConfig, env: Env, state: TrainState,
     td3_in_episodes = config.pg_guides_ea or config.td3_probe
     td3_return = _td3_return(config, episodes.returns)
     if config.ea_guides_pg:
-        guided = td3_turn & fell_behind(td3_return, returns)
+        guided = td3_turn & fell_behind(td3_return, returns, config.fell_behind_rule)
     else:
         guided = jnp.zeros((), bool)
 
     num_rollout = episodes.lengths.shape[0]
     num_update = interaction_steps // config.update_blocks
     max_update = num_rollout * config.t_max // config.update_blocks
-    new_td3, beta, losses = td3.train(state.td3, buffer, played.train_key, num_update,
-                                      max_update, unflatten(new_cem.elite), guided, state.beta)
+    elite = unflatten(new_cem.elite)
+    td3_state = state.td3
+    if config.target_actor_from_elite:
+        td3_state = td3_state.replace(actor_target=elite)
+    new_td3, beta, losses = td3.train(td3_state, buffer, played.train_key, num_update,
+                                      max_update, elite, guided, state.beta)
     generation = state.generation + 1
     new_state = state.replace(cem=new_cem, td3=new_td3, buffer=buffer, beta=beta,
                               generation=generation,

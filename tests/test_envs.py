@@ -67,6 +67,19 @@ def test_unknown_task_lists_every_task():
         assert name in str(error.value)
 
 
+def test_start_pose_is_brax_keyframe_or_qpos0():
+    """ant's model has Brax's `init_qpos` keyframe (torso at 0.55 m, legs bent); Gym resets
+    around qpos0 (torso at 0.75 m, legs flat). Models without a keyframe start at qpos0."""
+    keyframe, gym = make_env("ant"), make_env("ant", start_pose="qpos0")
+    assert float(keyframe._init_qpos[2]) == pytest.approx(0.55)
+    np.testing.assert_array_equal(gym._init_qpos, gym.mj_model.qpos0)
+    assert float(gym._init_qpos[2]) == pytest.approx(0.75)
+    np.testing.assert_array_equal(make_env("hopper")._init_qpos,
+                                  make_env("hopper", start_pose="qpos0")._init_qpos)
+    with pytest.raises(ValueError, match="start_pose 'bent'; valid: init_qpos, qpos0"):
+        make_env("ant", start_pose="bent")
+
+
 def test_physics_overrides_reach_the_model():
     env = make_env("hopper", iterations=3, ls_iterations=7, euler_damping=True)
     assert (env.mj_model.opt.iterations, env.mj_model.opt.ls_iterations) == (3, 7)

@@ -10,6 +10,7 @@ import pytest
 from pgps_jax import pgps
 from pgps_jax.config import PGPSConfig
 from pgps_jax.envs.point import PointMass
+from pgps_jax.networks import flatten
 
 ENV = PointMass()
 SMALL = PGPSConfig(pop_size=4, top_k=2, actor_hidden=(16, 16), critic_hidden=(16, 16),
@@ -33,6 +34,30 @@ def test_fell_behind_is_below_mean_minus_std():
     returns = jnp.array([10.0, 20.0, 30.0, 40.0])        # mean 25, std ≈ 11.18
     assert bool(pgps.fell_behind(jnp.asarray(13.0), returns))
     assert not bool(pgps.fell_behind(jnp.asarray(14.0), returns))
+
+
+@pytest.mark.parametrize("rule", ["mean_minus_std", "mean"])
+def test_fell_behind_rules_match_numpy(rule):
+    returns = np.random.default_rng(0).normal(100.0, 30.0, size=(50, 6)).astype(np.float32)
+    for row in returns:
+        threshold = row.mean() - (row.std() if rule == "mean_minus_std" else 0.0)
+        for td3_return in (threshold - 1.0, threshold + 1.0, row.mean() - 0.5 * row.std()):
+            assert (bool(pgps.fell_behind(jnp.asarray(td3_return), jnp.asarray(row), rule))
+                    == bool(td3_return < threshold))
+
+
+def test_the_target_actor_starts_each_generation_at_the_elite_only_when_asked():
+    """With τ tiny, the target actor after a generation's updates is where they began: the new
+    elite with `target_actor_from_elite`, else the old target."""
+    for from_elite in (True, False):
+        config = SMALL.replace(tau=1e-7, target_actor_from_elite=from_elite)
+        state = pgps.make_init(config, ENV)(jax.random.PRNGKey(0))
+        target_before = np.asarray(flatten(state.td3.actor_target))
+        new, _ = pgps.make_generation_step(config, ENV, donate=False)(state)
+        target_after = np.asarray(flatten(new.td3.actor_target))
+        start = np.asarray(new.cem.elite) if from_elite else target_before
+        assert not np.allclose(np.asarray(new.cem.elite), target_before, atol=1e-3)
+        np.testing.assert_allclose(target_after, start, atol=1e-4)
 
 
 def tree_equal(a, b):

@@ -16,6 +16,10 @@ from mujoco import mjx
 from pgps_jax.envs import nan_guard, physics
 from pgps_jax.envs.physics import Physics
 
+START_POSES = ("init_qpos", "qpos0")
+"""Reset poses: Brax's `init_qpos` keyframe where the model has one (ant), else qpos0; or the
+model's reference pose qpos0, as Gym's MuJoCo envs reset."""
+
 METRICS = ("x_position", "x_velocity", "reward_forward", "reward_ctrl", "reward_healthy",
            "unstable")
 
@@ -37,11 +41,16 @@ class MjxEnv(Env):
     qvel_noise_normal: bool = False
     """Reset velocity noise ~ scale·N(0, 1) (HalfCheetah, Ant) instead of U(±scale)."""
 
-    def __init__(self, **physics_overrides):
-        """`physics_overrides`: fields of `Physics` replacing the task's defaults."""
+    def __init__(self, start_pose: str = "init_qpos", **physics_overrides):
+        """`start_pose`: the pose that reset adds noise to, one of `START_POSES`;
+        `physics_overrides`: fields of `Physics` replacing the task's defaults."""
+        if start_pose not in START_POSES:
+            raise ValueError(f"unknown start_pose {start_pose!r}; valid: {', '.join(START_POSES)}")
         self.physics = dataclasses.replace(self.default_physics, **physics_overrides)
         self.mj_model, self.mjx_model = physics.load_model(self.xml, self.physics)
-        self._init_qpos = jnp.asarray(physics.init_qpos(self.mj_model))
+        pose = (physics.init_qpos(self.mj_model) if start_pose == "init_qpos"
+                else self.mj_model.qpos0)
+        self._init_qpos = jnp.asarray(pose)
         self._data0 = mjx.make_data(self.mjx_model)
 
     @property

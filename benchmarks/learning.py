@@ -1,0 +1,121 @@
+"""Learning results of one configuration on one task: seeds vmapped in one program.
+
+Trains `--seeds` seeds of PGPS (the paper's configuration `for_task(task)` with `--set`
+overrides, on the task's env with `--env` keyword arguments) for `--steps` env steps through
+the public API, as the README's five-seed snippet does, and writes a JSON with
+- the μ evaluation curve of every seed (`eval/step`, `eval/mu_mean`, every `eval_every` steps);
+- μ, the TD3 actor and the elite at the end, each on 10 deterministic episodes from fresh
+  start states (PRNGKey(10_000 + seed)), per seed;
+- per generation and seed: episode limit T, interaction steps, population mean and elite
+  return, the TD3 actor's return, whether the guided loss trained it, β and the CEM variance.
+
+    python benchmarks/learning.py --task ant --steps 500000 --env start_pose=qpos0 \
+        --set fell_behind_rule=mean --out benchmarks/results/learning_ant_qpos0_mean.json
+"""
+
+import argparse
+import ast
+import functools
+import json
+import os
+import subprocess
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pgps_jax import pgps
+from pgps_jax.config import for_task
+from pgps_jax.envs import make_env
+
+PER_GENERATION = {"limit": "gen/episode_limit", "interaction_steps": "gen/interaction_steps",
+                  "return_mean": "pop/return_mean", "elite_return": "cem/elite_return",
+                  "td3_return": "td3/return", "guided": "td3/fell_behind", "beta": "td3/beta",
+                  "cem_var": "cem/var_mean"}
+FINAL_KEY_OFFSET = 10_000
+
+
+def _assignments(pairs: list[str]) -> dict:
+    """`name=value` pairs, values as Python literals where they parse, else strings."""
+    values = {}
+    for pair in pairs:
+        name, _, text = pair.partition("=")
+        try:
+            values[name] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            values[name] = text
+    return values
+
+
+def train(task: str, steps: int, seeds: int, overrides: dict, env_kwargs: dict) -> dict:
+    config = for_task(task, **overrides)
+    env = make_env(task, **env_kwargs)
+    keys = jax.random.split(jax.random.PRNGKey(0), seeds)
+    eval_keys = jax.vmap(lambda s: jax.random.PRNGKey(s + 100))(jnp.arange(seeds))
+    bind = functools.partial
+    init = jax.jit(jax.vmap(bind(pgps.init, config, env)))
+    step = jax.jit(jax.vmap(bind(pgps.generation_step, config, env)), donate_argnums=0)
+    finish = jax.jit(jax.vmap(bind(pgps.finish_evaluation, config, env)), donate_argnums=0)
+    evaluate = jax.jit(jax.vmap(bind(pgps.evaluate, config, env)))
+    start = time.perf_counter()
+    state = init(keys, eval_keys)
+    curves = [[] for _ in range(seeds)]
+    per_generation = {name: [] for name in PER_GENERATION}
+
+    def record(metrics):
+        done, at, mu = jax.device_get([metrics[k] for k in ("eval/done", "eval/step",
+                                                            "eval/mu_mean")])
+        for seed in np.flatnonzero(done):
+            curves[seed].append((int(at[seed]), float(mu[seed])))
+
+    while int(np.min(jax.device_get(state.total_steps))) < steps:
+        state, metrics = step(state)
+        record(metrics)
+        values = jax.device_get({name: metrics[key] for name, key in PER_GENERATION.items()})
+        for name, value in values.items():
+            per_generation[name].append(np.asarray(value).tolist())
+        generation = len(per_generation["limit"])
+        if generation % 20 == 0:
+            print(f"generation {generation}: steps {np.asarray(jax.device_get(state.total_steps)).tolist()}"
+                  f" μ {[c[-1][1] if c else None for c in curves]}"
+                  f" ({time.perf_counter() - start:.0f} s)", flush=True)
+    while np.any(jax.device_get(state.evaluation.active)):
+        state, metrics = finish(state)
+        record(metrics)
+    final_keys = jax.vmap(lambda s: jax.random.PRNGKey(s + FINAL_KEY_OFFSET))(jnp.arange(seeds))
+    final = jax.device_get(evaluate(state, final_keys))
+    return {"task": task, "steps": steps, "seeds": seeds, "overrides": overrides,
+            "env": env_kwargs, "wall_s": time.perf_counter() - start,
+            "final": {name: np.asarray(final[f"eval/{name}_mean"]).tolist()
+                      for name in pgps.EVALUATED},
+            "curves": curves, "per_generation": per_generation}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--steps", type=int, default=1_000_000)
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                        help="PGPSConfig fields replacing the paper's")
+    parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
+                        help="keyword arguments of make_env")
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args()
+    result = train(args.task, args.steps, args.seeds, _assignments(args.set),
+                   _assignments(args.env))
+    result.update(device=jax.devices()[0].device_kind,
+                  commit=subprocess.run(["git", "rev-parse", "--short", "HEAD"],
+                                        capture_output=True, text=True).stdout.strip())
+    os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(result, f)
+    final = result["final"]
+    print(json.dumps({"task": args.task, "set": args.set, "env": args.env,
+                      "wall_s": round(result["wall_s"]),
+                      **{k: [round(x) for x in v] for k, v in final.items()}}))
+
+
+if __name__ == "__main__":
+    main()
