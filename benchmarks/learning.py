@@ -77,7 +77,8 @@ def train(task: str, steps: int, seeds: int, overrides: dict, env_kwargs: dict) 
             per_generation[name].append(np.asarray(value).tolist())
         generation = len(per_generation["limit"])
         if generation % 20 == 0:
-            print(f"generation {generation}: steps {np.asarray(jax.device_get(state.total_steps)).tolist()}"
+            steps_now = np.asarray(jax.device_get(state.total_steps)).tolist()
+            print(f"generation {generation}: steps {steps_now}"
                   f" μ {[c[-1][1] if c else None for c in curves]}"
                   f" ({time.perf_counter() - start:.0f} s)", flush=True)
     while np.any(jax.device_get(state.evaluation.active)):

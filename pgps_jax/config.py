@@ -9,6 +9,8 @@ from typing import Tuple
 
 TASK_NAMES = ("swimmer", "halfcheetah", "hopper", "walker2d", "ant")
 FELL_BEHIND_RULES = ("mean_minus_std", "mean")
+EVALUATED_ACTORS = ("mu", "td3", "elite")
+"""The actors each evaluation tests, in batch order: the CEM mean μ, the TD3 actor, the elite."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 
 from pgps_jax import buffer as replay
 from pgps_jax import cem, qfilter
-from pgps_jax.config import PGPSConfig
+from pgps_jax.config import EVALUATED_ACTORS, PGPSConfig
 from pgps_jax.envs import Env
 from pgps_jax.networks import actor_flattener, first_q, flatten
 from pgps_jax.rollout import (EpisodeState, Relay, begin_episodes, play, random_warmup,
@@ -329,8 +329,7 @@ def generation_step(config: PGPSConfig, env: Env,
     return learn_generation(config, env, *play_generation(config, env, state))
 
 
-EVALUATED = ("mu", "td3", "elite")
-"""The actors each evaluation tests, in batch order: the CEM mean μ, the TD3 actor, the elite."""
+EVALUATED = EVALUATED_ACTORS
 
 
 def _test_episodes(config: PGPSConfig, env: Env, key: jax.Array, steps: int) -> EpisodeState:

@@ -34,7 +34,7 @@ from typing import Optional, Sequence
 import jax
 import numpy as np
 
-from pgps_jax.config import TASK_NAMES
+from pgps_jax.config import EVALUATED_ACTORS, TASK_NAMES
 from pgps_jax.errors import EXIT_OK, UsageError, report
 from pgps_jax.tool_args import load_run, parse_args
 
@@ -126,9 +126,8 @@ def _render(argv: Sequence[str]) -> int:
                       required=("run",))
     settings, config, saved = load_run(args["run"])
     policy = args.get("policy", "mu")
-    policies = [k for k in saved if k not in ("generation", "env_steps")]
-    if policy not in policies:
-        raise UsageError(f"policy={policy!r}: choose one of {', '.join(policies)}")
+    if policy not in EVALUATED_ACTORS:
+        raise UsageError(f"policy={policy!r}: choose one of {', '.join(EVALUATED_ACTORS)}")
     steps = args.get("steps", config.eval_steps)
     if steps < 1:
         raise UsageError("steps must be >= 1")

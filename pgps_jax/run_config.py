@@ -207,12 +207,15 @@ def from_dict(values: Mapping[str, Any]) -> tuple[RunSettings, PGPSConfig]:
     pgps_values = values.get("pgps")
     if not isinstance(pgps_values, Mapping):
         raise UsageError("missing the pgps: node of the configuration")
-    run, config = run_settings(values), pgps_config(pgps_values)
+    return run_settings(values), pgps_config(pgps_values)
+
+
+def require_training(run: RunSettings, config: PGPSConfig) -> None:
+    """UsageError unless the budget leaves steps for generations after the random warm-up."""
     if run.total_steps <= config.warmup_steps:
         raise UsageError(f"total_steps={run.total_steps} does not exceed the random warm-up "
                          f"(pgps.warmup_steps={config.warmup_steps}): no generation would train; "
                          f"set total_steps above {config.warmup_steps}")
-    return run, config
 
 
 def flatten(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

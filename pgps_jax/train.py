@@ -28,7 +28,7 @@ from pgps_jax.errors import (EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, UsageError, 
                              report)
 from pgps_jax.run_config import (CONFIG_DIR, IDENTITY_KEYS, RunSettings, check_overrides,
                                  differences, explicitly_set, flatten, from_dict, override_keys,
-                                 register_structured_configs)
+                                 register_structured_configs, require_training)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,6 +79,7 @@ def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
     values = copy.deepcopy(dict(values))
     run, config = from_dict(values)
     if run.resume is False:
+        require_training(run, config)
         directory = rundir.RunDir(run.run_dir)
         directory.ensure_writable()
         lock = directory.lock()
@@ -108,6 +109,7 @@ def _plan_resume(run: RunSettings, config: PGPSConfig, values: dict, overrides: 
     if not directory.has_checkpoint():
         if by_path:
             raise UsageError(f"resume={run.resume}: {directory.checkpoints} holds no checkpoint")
+        require_training(run, config)
         print(f"resume=true: no checkpoint in {directory.path}; starting a new run there",
               file=sys.stderr)
         return Plan(run, config, values, directory, lock, None)
@@ -128,6 +130,7 @@ def _plan_resume(run: RunSettings, config: PGPSConfig, values: dict, overrides: 
             f"configuration; refusing to resume it. Differing fields:\n  " + "\n  ".join(diffs)
             + "\nResume with the checkpoint's settings, or start a new run in another run_dir.")
     run, config = from_dict(effective)
+    require_training(run, config)
     run = dataclasses.replace(run, run_dir=str(directory.path))
     return Plan(run, config, effective, directory, lock, step)
 

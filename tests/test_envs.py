@@ -80,6 +80,17 @@ def test_start_pose_is_brax_keyframe_or_qpos0():
         make_env("ant", start_pose="bent")
 
 
+def test_brax_asset_warnings_are_dropped_and_others_shown(capfd):
+    make_env("halfcheetah")  # Brax's half_cheetah.xml sets the deprecated settotalmass
+    with physics._known_warnings_dropped():
+        mujoco.get_mju_user_warning()("compiler attribute 'settotalmass' is deprecated ...")
+        mujoco.get_mju_user_warning()("something else")
+    out, err = capfd.readouterr()
+    assert "settotalmass" not in out + err
+    assert "WARNING: something else" in err
+    assert mujoco.get_mju_user_warning() is None  # MuJoCo's own handler is back
+
+
 def test_physics_overrides_reach_the_model():
     env = make_env("hopper", iterations=3, ls_iterations=7, euler_damping=True)
     assert (env.mj_model.opt.iterations, env.mj_model.opt.ls_iterations) == (3, 7)

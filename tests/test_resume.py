@@ -2,6 +2,7 @@
 early): Ctrl-C mid-run, resume by directory, and the finished run's logs equal an
 uninterrupted run's (same seed, same machine). SIGKILL at random moments: test_faults."""
 
+import shutil
 import signal
 
 from pgps_jax import run_dir as rundir
@@ -58,3 +59,19 @@ def test_resuming_a_finished_run_changes_nothing(task_runs, cache, tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     assert "done:" in result.stdout
     assert {p: p.read_bytes() for p in before} == before
+
+
+def test_resume_by_directory_extends_the_budget_under_the_run_s_own_warm_up(task_runs, cache,
+                                                                            tmp_path):
+    """total_steps=800 is below the command line's default warm-up (10,000) but above the
+    run's (200): the run's settings decide."""
+    reference, _ = task_runs("hopper")
+    run_dir = tmp_path / "extended"
+    shutil.copytree(reference, run_dir)
+    before = data_rows(run_dir / rundir.METRICS)
+    result = run("train", [f"resume={run_dir}", "total_steps=800", "progress=false"], cache,
+                 tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    _, rows = read_csv(run_dir / rundir.METRICS)
+    assert len(rows) > before and int(rows[-1]["env_steps"]) >= 800
+    assert int(rows[before - 1]["env_steps"]) < 800

@@ -145,3 +145,17 @@ def test_eval_every_is_set_in_one_place():
     assert run.eval_every == config.eval_every == 123
     with pytest.raises(UsageError, match="eval_every=N"):
         check_overrides(["pgps.eval_every=5"])
+
+
+@pytest.mark.parametrize("total_steps", [100, 200])
+def test_a_budget_within_the_warm_up_is_refused_before_anything_is_written(tmp_path,
+                                                                          total_steps):
+    from pgps_jax.train import plan
+    run_dir = tmp_path / "run"
+    values = composed("env=point", f"total_steps={total_steps}", "pgps.warmup_steps=200",
+                      f"run_dir={run_dir}")
+    with pytest.raises(UsageError) as err:
+        plan(values)
+    assert (f"total_steps={total_steps} does not exceed the random warm-up "
+            "(pgps.warmup_steps=200)") in str(err.value)
+    assert not run_dir.exists()

@@ -4,8 +4,10 @@ An env step is `n_frames` calls of `mjx.step`, with the control held fixed (Gym'
 `do_simulation`). Nothing else is computed per frame.
 """
 
+import contextlib
 import dataclasses
 import functools
+import sys
 
 import brax
 from etils import epath
@@ -55,7 +57,8 @@ def model_defaults(xml: str) -> Physics:
 
 def load_model(xml: str, physics: Physics) -> tuple[mujoco.MjModel, mjx.Model]:
     """Loads `brax/envs/assets/<xml>` with `physics` applied; returns it and its MJX copy."""
-    model = mujoco.MjModel.from_xml_path(str(_ASSETS / xml))
+    with _known_warnings_dropped():
+        model = mujoco.MjModel.from_xml_path(str(_ASSETS / xml))
     model.opt.solver = _SOLVERS[physics.solver]
     model.opt.iterations = physics.iterations
     model.opt.ls_iterations = physics.ls_iterations
@@ -65,6 +68,32 @@ def load_model(xml: str, physics: Physics) -> tuple[mujoco.MjModel, mjx.Model]:
     else:
         model.opt.disableflags |= eulerdamp
     return model, mjx.put_model(model)
+
+
+_KNOWN_WARNINGS = ("compiler attribute 'settotalmass' is deprecated",)
+"""MuJoCo's warnings about Brax's assets that change nothing in the model we load (MuJoCo 4
+still applies half_cheetah.xml's `settotalmass`)."""
+
+
+@contextlib.contextmanager
+def _known_warnings_dropped():
+    """Inside, MuJoCo's warnings that start like one of `_KNOWN_WARNINGS` are dropped; the
+    others reach the previous handler (MuJoCo's own, which prints them, if there was none)."""
+    previous = mujoco.get_mju_user_warning()
+
+    def handle(message: str) -> None:
+        if message.startswith(_KNOWN_WARNINGS):
+            return
+        if previous is not None:
+            previous(message)
+        else:
+            print(f"WARNING: {message}", file=sys.stderr)
+
+    mujoco.set_mju_user_warning(handle)
+    try:
+        yield
+    finally:
+        mujoco.set_mju_user_warning(previous)
 
 
 def init_qpos(model: mujoco.MjModel) -> np.ndarray:
