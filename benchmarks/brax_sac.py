@@ -35,7 +35,12 @@ def main():
     parser.add_argument("--steps", type=int, default=1_000_000)
     parser.add_argument("--num-evals", type=int, default=11)
     parser.add_argument("--out", default="benchmarks/results/brax_sac.json")
+    parser.add_argument("--no-normalize", action="store_true",
+                        help="feed raw observations (PGPS and TD3 do not normalise)")
+    parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
+                        help="keyword arguments of make_env (e.g. floor_contacts=every_geom)")
     args = parser.parse_args()
+    env_kwargs = dict(item.split("=", 1) for item in args.env)
     if not hasattr(jax, "device_put_replicated"):
         jax.device_put_replicated = _device_put_replicated
     from brax.training.agents.sac import train as sac
@@ -47,13 +52,14 @@ def main():
                       "eval_return": float(metrics["eval/episode_reward"])})
         print(json.dumps(curve[-1]), flush=True)
 
-    sac.train(environment=make_env(args.task), num_timesteps=args.steps, episode_length=1000,
+    sac.train(environment=make_env(args.task, **env_kwargs), num_timesteps=args.steps, episode_length=1000,
               num_envs=64, num_eval_envs=16, batch_size=256, grad_updates_per_step=64,
               learning_rate=6e-4, discounting=0.99, reward_scaling=1.0,
-              normalize_observations=True, min_replay_size=8192,
+              normalize_observations=not args.no_normalize, min_replay_size=8192,
               max_replay_size=min(args.steps, 1_000_000), num_evals=args.num_evals,
               deterministic_eval=True, seed=0, progress_fn=progress)
     result = {"device": jax.devices()[0].device_kind, "task": args.task, "steps": args.steps,
+              "normalize_observations": not args.no_normalize, "env": env_kwargs,
               "wall_s_including_compile": time.perf_counter() - start,
               "first_progress_s (compile + first eval)": curve[0]["wall_s"], "curve": curve}
     os.makedirs(os.path.dirname(args.out), exist_ok=True)

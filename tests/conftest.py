@@ -4,16 +4,14 @@ session, and one reduced training run per MuJoCo task, made on first use."""
 import os
 import pathlib
 
-# Tests check behaviour, not speed: XLA compiles the (large) MJX programs with fewer
-# optimisation passes, in this process and in the CLI subprocesses, which inherit it.
-os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""),
-                                    "--xla_backend_optimization_level=0",
-                                    "--xla_llvm_disable_expensive_passes=true"]).strip()
+from train_cli import FAST_COMPILE_FLAGS, run
+
+# The tests' own programs compile once and run briefly: XLA spends less time optimising them
+# (the CLI subprocesses, which run a program many times from the compilation cache, do not).
+os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *FAST_COMPILE_FLAGS])
 
 import jax  # noqa: E402  (after XLA_FLAGS)
 import pytest  # noqa: E402
-
-from train_cli import run  # noqa: E402
 
 # The maths tests compare with float32 numpy; a GPU would otherwise multiply in TF32.
 jax.config.update("jax_default_matmul_precision", "highest")

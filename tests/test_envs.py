@@ -102,6 +102,35 @@ def test_physics_overrides_reach_the_model():
         make_env("hopper", solver="pgs")
 
 
+def _floor_contacts(env, torso_z: float) -> set[str]:
+    """Names of the geoms touching the floor with the ant's torso lowered to `torso_z`."""
+    model = env.mj_model
+    data = mujoco.MjData(model)
+    data.qpos[:] = model.qpos0
+    data.qpos[2] = torso_z
+    mujoco.mj_forward(model, data)
+    floor = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "floor")
+    names = set()
+    for contact in data.contact[:data.ncon]:
+        other = contact.geom2 if contact.geom1 == floor else contact.geom1
+        names.add(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, other))
+    return names
+
+
+def test_floor_contacts_of_the_model_or_of_every_geom():
+    """Brax's ant lets only its feet touch the floor; with floor_contacts="every_geom" the
+    torso and legs do too (Gym's ant), with a margin of 0.01 m, and no geom touches another."""
+    assert _floor_contacts(make_env("ant"), 0.05) == {f"{side}_foot_geom" for side in
+                                                     ("left", "right", "third", "fourth")}
+    gym_like = make_env("ant", floor_contacts="every_geom")
+    touching = _floor_contacts(gym_like, 0.05)
+    assert {"torso_geom", "aux_1_geom", "left_ankle_geom"} <= touching
+    assert np.all(gym_like.mj_model.geom_margin == 0.01)
+    assert _floor_contacts(gym_like, 0.5) == set()  # 0.25 m above the floor: none
+    with pytest.raises(ValueError, match="every_geom"):
+        make_env("ant", floor_contacts="all")
+
+
 def test_shapes_and_dtypes(task):
     obs_size, action_size, dt, _ = GYM_V4[task.name]
     env = task.env

@@ -25,11 +25,18 @@ def tiny(*overrides: str) -> list[str]:
 
 HOST_COLUMNS = ("steps_per_s", "wall_time_s")
 
+FAST_COMPILE_FLAGS = ("--xla_backend_optimization_level=0",
+                      "--xla_llvm_disable_expensive_passes=true")
+"""XLA flags that shorten compilation and slow execution: for the test process only."""
+
 
 def cli_env(cache_dir: pathlib.Path) -> dict:
-    """The environment of a CLI subprocess: CPU, and a persistent compilation cache shared by
-    the test's subprocesses (the same program compiles to the same executable)."""
+    """The environment of a CLI subprocess: CPU, XLA's full optimisation, and a persistent
+    compilation cache shared by the test's subprocesses (the same program compiles to the
+    same executable)."""
     env = dict(os.environ)
+    flags = [f for f in env.get("XLA_FLAGS", "").split() if f not in FAST_COMPILE_FLAGS]
+    env["XLA_FLAGS"] = " ".join(flags)
     env.update(JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(cache_dir),
                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", PYTHONUNBUFFERED="1")
     return env

@@ -22,6 +22,9 @@ from pgps_jax.envs.small_linalg import SMALL_LINALG
 
 _ASSETS = epath.resource_path(brax.__name__) / "envs/assets"
 _SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
+FLOOR_CONTACTS = ("model", "every_geom")
+"""Which geoms touch the floor: those the Brax asset lets (ant: its four feet), or every body
+geom with a 0.01 m contact margin, as in Gym's MuJoCo assets."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,10 +39,15 @@ class Physics:
     """Maximum line-search iterations per solver iteration (all of them run under vmap)."""
     euler_damping: bool = False
     """Integrate joint damping implicitly in the Euler step (MuJoCo's default: on)."""
+    floor_contacts: str = "model"
+    """One of `FLOOR_CONTACTS`."""
 
     def __post_init__(self):
         if self.solver not in _SOLVERS:
             raise ValueError(f"solver must be one of {sorted(_SOLVERS)}, got {self.solver!r}")
+        if self.floor_contacts not in FLOOR_CONTACTS:
+            raise ValueError(f"floor_contacts must be one of {', '.join(FLOOR_CONTACTS)}, "
+                             f"got {self.floor_contacts!r}")
         if self.iterations < 1 or self.ls_iterations < 1:
             raise ValueError(
                 f"iterations and ls_iterations must be >= 1, got {self.iterations}, "
@@ -58,7 +66,12 @@ def model_defaults(xml: str) -> Physics:
 def load_model(xml: str, physics: Physics) -> tuple[mujoco.MjModel, mjx.Model]:
     """Loads `brax/envs/assets/<xml>` with `physics` applied; returns it and its MJX copy."""
     with _known_warnings_dropped():
-        model = mujoco.MjModel.from_xml_path(str(_ASSETS / xml))
+        if physics.floor_contacts == "every_geom":
+            spec = mujoco.MjSpec.from_file(str(_ASSETS / xml))
+            _every_geom_touches_the_floor(spec)
+            model = spec.compile()
+        else:
+            model = mujoco.MjModel.from_xml_path(str(_ASSETS / xml))
     model.opt.solver = _SOLVERS[physics.solver]
     model.opt.iterations = physics.iterations
     model.opt.ls_iterations = physics.ls_iterations
@@ -68,6 +81,16 @@ def load_model(xml: str, physics: Physics) -> tuple[mujoco.MjModel, mjx.Model]:
     else:
         model.opt.disableflags |= eulerdamp
     return model, mjx.put_model(model)
+
+
+def _every_geom_touches_the_floor(spec: mujoco.MjSpec) -> None:
+    """Gym's contacts: each geom of a body collides with the world's geoms (the floor), not
+    with the others, with a 0.01 m margin. Set before compiling: the compiled model's broad
+    and mid phase only see the geoms that collided then."""
+    for geom in spec.geoms:
+        on_body = geom.parent.name != spec.worldbody.name
+        geom.contype, geom.conaffinity = (1, 0) if on_body else (geom.contype, 1)
+        geom.margin = 0.01
 
 
 _KNOWN_WARNINGS = ("compiler attribute 'settotalmass' is deprecated",)
