@@ -15,9 +15,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pgps_jax import cem, pgps
+from pgps_jax import cem
 from pgps_jax.config import for_task
 from pgps_jax.envs import make_env, physics
+from pgps_jax.pgps import PGPS
 from pgps_jax.rollout import run_episodes
 
 T = int(os.environ.get("T", 1000))      # T=5: a quick CPU check of the script
@@ -28,9 +29,9 @@ for unroll in (False, True):
     physics.step_frames = unrolled_step_frames if unroll else (
         lambda m, d, n: jax.lax.fori_loop(0, n, lambda _, x: physics.mjx.step(m, x), d))
     env = make_env("halfcheetah")
-    td3, unflatten = pgps._parts(config, env)
-    policy = pgps._policy(td3, unflatten)
-    state = pgps.make_init(config, env)(jax.random.PRNGKey(0))
+    agent = PGPS(config, env)
+    policy = agent.policy
+    state = jax.jit(agent.init)(jax.random.PRNGKey(0))
     for batch in (10, 40):
         key = jax.random.PRNGKey(batch)
         pop = cem.ask(key, state.cem, batch)

@@ -15,7 +15,6 @@ the public API, as the README's five-seed snippet does, and writes a JSON with
 
 import argparse
 import ast
-import functools
 import json
 import os
 import subprocess
@@ -25,9 +24,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pgps_jax import pgps
-from pgps_jax.config import for_task
+from pgps_jax.config import EVALUATED_ACTORS, for_task
 from pgps_jax.envs import make_env
+from pgps_jax.pgps import PGPS
 
 PER_GENERATION = {"limit": "gen/episode_limit", "interaction_steps": "gen/interaction_steps",
                   "return_mean": "pop/return_mean", "elite_return": "cem/elite_return",
@@ -53,11 +52,10 @@ def train(task: str, steps: int, seeds: int, overrides: dict, env_kwargs: dict) 
     env = make_env(task, **env_kwargs)
     keys = jax.random.split(jax.random.PRNGKey(0), seeds)
     eval_keys = jax.vmap(lambda s: jax.random.PRNGKey(s + 100))(jnp.arange(seeds))
-    bind = functools.partial
-    init = jax.jit(jax.vmap(bind(pgps.init, config, env)))
-    step = jax.jit(jax.vmap(bind(pgps.generation_step, config, env)), donate_argnums=0)
-    finish = jax.jit(jax.vmap(bind(pgps.finish_evaluation, config, env)), donate_argnums=0)
-    evaluate = jax.jit(jax.vmap(bind(pgps.evaluate, config, env)))
+    agent = PGPS(config, env)
+    init = jax.jit(jax.vmap(agent.init))
+    step = jax.jit(jax.vmap(agent.generation_step), donate_argnums=0)
+    evaluate = jax.jit(jax.vmap(agent.evaluate))
     start = time.perf_counter()
     state = init(keys, eval_keys)
     curves = [[] for _ in range(seeds)]
@@ -81,15 +79,18 @@ def train(task: str, steps: int, seeds: int, overrides: dict, env_kwargs: dict) 
             print(f"generation {generation}: steps {steps_now}"
                   f" μ {[c[-1][1] if c else None for c in curves]}"
                   f" ({time.perf_counter() - start:.0f} s)", flush=True)
-    while np.any(jax.device_get(state.evaluation.active)):
-        state, metrics = finish(state)
-        record(metrics)
+    tests = state.evaluation
+    active, began = jax.device_get((tests.active, tests.step))
+    if np.any(active):   # the evaluations under way, played to their end from their start
+        ended = jax.device_get(evaluate(tests.actors, tests.key))["eval/mu_mean"]
+        for seed in np.flatnonzero(active):
+            curves[seed].append((int(began[seed]), float(ended[seed])))
     final_keys = jax.vmap(lambda s: jax.random.PRNGKey(s + FINAL_KEY_OFFSET))(jnp.arange(seeds))
-    final = jax.device_get(evaluate(state, final_keys))
+    final = jax.device_get(evaluate(jax.vmap(agent.evaluated_actors)(state), final_keys))
     return {"task": task, "steps": steps, "seeds": seeds, "overrides": overrides,
             "env": env_kwargs, "wall_s": time.perf_counter() - start,
             "final": {name: np.asarray(final[f"eval/{name}_mean"]).tolist()
-                      for name in pgps.EVALUATED},
+                      for name in EVALUATED_ACTORS},
             "curves": curves, "per_generation": per_generation}
 
 

@@ -28,7 +28,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from throughput import timed  # noqa: E402  (sibling benchmark)
 
 from pgps_jax import buffer as replay  # noqa: E402
-from pgps_jax import pgps  # noqa: E402
+from pgps_jax.pgps import PGPS, episode_limit  # noqa: E402
 from pgps_jax.config import for_task  # noqa: E402
 from pgps_jax.envs import make_env  # noqa: E402
 
@@ -37,7 +37,7 @@ SMOKE = "--smoke" in sys.argv
 
 def late_state(config, env):
     """The state of a run at 600k steps: full buffer of random rows, an evaluation begun."""
-    state = pgps.make_init(config, env)(jax.random.PRNGKey(0))
+    state = jax.jit(PGPS(config, env).init)(jax.random.PRNGKey(0))
     capacity = config.buffer_size
     k = jax.random.split(jax.random.PRNGKey(1), 5)
     data = replay.Transition(
@@ -119,10 +119,11 @@ def main():
                                 critic_hidden=(16, 16), eval_steps=20, sample_ratio=2)
     env = make_env("halfcheetah")
     state = late_state(config, env)
-    step = pgps.make_generation_step(config, env, donate=False)
+    agent = PGPS(config, env)
+    step = jax.jit(agent.generation_step)
     first_s, generation_s = timed(step, state, repeats=3)
 
-    td3, unflatten = pgps._parts(config, env)
+    td3, unflatten = agent.td3, agent.actor
     num_update = config.pop_size * config.t_max // config.update_blocks
     key = jax.random.PRNGKey(2)
     train = jax.jit(lambda s: td3.train(s.td3, s.buffer, key, jnp.asarray(num_update),
@@ -143,7 +144,7 @@ def main():
         profile = summarise(trace[0], args.generations) if trace else {"trace": "not written"}
 
     result = {"device": jax.devices()[0].device_kind, "jax": jax.__version__,
-              "generation_T": int(pgps.episode_limit(state.total_steps, config)),
+              "generation_T": int(episode_limit(state.total_steps, config)),
               "generation_step_ms": generation_s * 1e3,
               "generation_step_compile_s": first_s - generation_s,
               "generation_step_ms_under_trace": traced_s * 1e3,

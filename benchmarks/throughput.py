@@ -33,10 +33,11 @@ sys.path.insert(0, os.path.dirname(__file__))
 from env_latency import bare_rollout  # noqa: E402  (sibling benchmark: the physics floor)
 
 from pgps_jax import buffer as replay  # noqa: E402
-from pgps_jax import cem, pgps  # noqa: E402
+from pgps_jax import cem  # noqa: E402
 from pgps_jax.compile_ahead import compile_ahead  # noqa: E402
 from pgps_jax.config import for_task  # noqa: E402
 from pgps_jax.envs import TASKS, make_env  # noqa: E402
+from pgps_jax.pgps import PGPS, episode_limit  # noqa: E402
 from pgps_jax.rollout import run_episodes  # noqa: E402
 
 SMOKE = "--smoke" in sys.argv
@@ -62,7 +63,7 @@ def sequential_steps_per_run(config) -> int:
     """Env steps one actor takes in a 1M-step run if no episode terminates (eq. 4 schedule)."""
     steps, sequential = config.warmup_steps, 0
     while steps < TOTAL_STEPS:
-        limit = int(pgps.episode_limit(jnp.asarray(steps), config))
+        limit = int(episode_limit(jnp.asarray(steps), config))
         steps += limit * config.pop_size
         sequential += limit
     return sequential + -(-config.warmup_steps // config.pop_size)
@@ -146,10 +147,11 @@ def components(task: str) -> dict:
     config = bench_config(task)
     env = make_env(task)
     n, t_max = config.pop_size, config.t_max
-    td3, unflatten = pgps._parts(config, env)
-    policy = pgps._policy(td3, unflatten)
-    init_s, _ = timed(pgps.make_init(config, env), jax.random.PRNGKey(0), repeats=0)
-    state = pgps.make_init(config, env)(jax.random.PRNGKey(0))
+    agent = PGPS(config, env)
+    td3, unflatten, policy = agent.td3, agent.actor, agent.policy
+    init = jax.jit(agent.init)
+    init_s, _ = timed(init, jax.random.PRNGKey(0), repeats=0)
+    state = init(jax.random.PRNGKey(0))
     state = state.replace(total_steps=jnp.asarray(config.q_filter_start, jnp.int32))
     key = jax.random.PRNGKey(1)
     population = cem.ask(key, state.cem, n)
@@ -159,9 +161,10 @@ def components(task: str) -> dict:
                                              t_max))
     _, rollout_s = timed(rollout, population, repeats=3)
     lengths = np.asarray(rollout(population).lengths)
-    evaluate = pgps.make_evaluate(config, env)
-    _, eval_s = timed(evaluate, state, jax.random.PRNGKey(100), repeats=3)
-    qfilter = jax.jit(lambda s, k: pgps._population(config, td3, unflatten, s, k, k, k))
+    evaluate = jax.jit(agent.evaluate)
+    _, eval_s = timed(evaluate, agent.evaluated_actors(state), jax.random.PRNGKey(100),
+                      repeats=3)
+    qfilter = jax.jit(lambda s, k: agent._population(s, k, k, k))
     _, qfilter_s = timed(qfilter, state, key)
     returns = jax.random.normal(key, (n,))
     tell = jax.jit(functools.partial(cem.tell, top_k=config.top_k, sigma_limit=config.sigma_limit,
@@ -173,8 +176,9 @@ def components(task: str) -> dict:
                                         num_update, unflatten(s.cem.elite),
                                         jnp.asarray(False), s.beta))
     _, train_s = timed(train, state, repeats=2)
-    step = pgps.make_generation_step(config, env, donate=False)
-    no_eval = state.replace(next_eval=jnp.asarray(2**30, jnp.int32))
+    step = jax.jit(agent.generation_step)
+    no_eval = state.replace(evaluation=state.evaluation.replace(
+        next_due=jnp.asarray(2**30, jnp.int32)))
     _, generation_s = timed(step, no_eval, repeats=2)
     _, generation_eval_s = timed(step, state, repeats=2)    # an evaluation begins alongside
 
@@ -211,7 +215,7 @@ def components(task: str) -> dict:
             "q_filter": qfilter_s * 1e3, "cem_update": tell_s * 1e3,
             "td3_updates": train_s * 1e3, "generation_step_total": generation_s * 1e3,
             "generation_step_total_with_eval_alongside": generation_eval_s * 1e3,
-            "generation_T": int(pgps.episode_limit(state.total_steps, config))},
+            "generation_T": int(episode_limit(state.total_steps, config))},
         "per_env_step_ms": {"population": env_ms, "evaluation": eval_ms, "floor_bare_mjx": bare_ms,
                             "population_over_floor": env_ms / bare_ms},
         "per_update_us": {
@@ -230,32 +234,25 @@ def components(task: str) -> dict:
 # ---------------------------------------------------------------------------- full 1M-step run
 def compile_run(config, env, keys, eval_keys, vmapped: bool, end_of_run: bool = True):
     """A run's programs compiled as the CLI compiles them: `init` and the two phases of a
-    generation side by side, then (with `end_of_run`) `finish_evaluation` and `evaluate` in
-    the background. With `vmapped`, each program is vmapped over the seeds of `keys`.
+    generation side by side, then (with `end_of_run`) `evaluate` in the background. With `vmapped`, each program is vmapped over the seeds of `keys`.
     Returns {name: future of its compiled program}, the `time.perf_counter()` at which the
     compilation began (once `init`'s output shapes were known) and the seconds until the two
     phases, and until `init` as well, were compiled."""
-    bind = functools.partial
-    if vmapped:
-        def jit(fn, donate=True):
-            return jax.jit(jax.vmap(bind(fn, config, env)), donate_argnums=0 if donate else ())
-        programs = {"init": jit(pgps.init, donate=False),
-                    "play": jit(pgps.play_generation), "learn": jit(pgps.learn_generation),
-                    "finish": jit(pgps.finish_evaluation),
-                    "evaluate": jit(pgps.evaluate, donate=False)}
-    else:
-        play, learn = pgps.make_generation_phases(config, env)
-        programs = {"init": pgps.make_init(config, env), "play": play, "learn": learn,
-                    "finish": pgps.make_finish_evaluation(config, env),
-                    "evaluate": pgps.make_evaluate(config, env)}
+    agent = PGPS(config, env)
+    batched = jax.vmap if vmapped else (lambda fn: fn)
+
+    def jit(fn, donate=True):
+        return jax.jit(batched(fn), donate_argnums=0 if donate else ())
+    programs = {"init": jit(agent.init, donate=False), "play": jit(agent.play),
+                "learn": jit(agent.learn), "evaluate": jit(agent.evaluate, donate=False)}
     abstract = jax.eval_shape(programs["init"], keys, eval_keys)
     start = time.perf_counter()
-    args = {name: (keys, eval_keys) if name == "init" else (abstract,) for name in programs}
-    args["learn"] = jax.eval_shape(programs["play"], abstract)
+    args = {"init": (keys, eval_keys), "play": (abstract,),
+            "learn": jax.eval_shape(programs["play"], abstract),
+            "evaluate": (jax.eval_shape(batched(agent.evaluated_actors), abstract), eval_keys)}
     compiled = compile_ahead(
         {name: (programs[name], args[name]) for name in ("init", "play", "learn")},
-        later={name: (programs[name], args[name]) for name in ("finish", "evaluate")}
-        if end_of_run else None)
+        later={"evaluate": (programs["evaluate"], args["evaluate"])} if end_of_run else None)
     compiled["play"].result(), compiled["learn"].result()
     phases_s = time.perf_counter() - start
     compiled["init"].result()
@@ -308,10 +305,13 @@ def full_run(task: str, seeds: int) -> dict:
                               ("guided", np.asarray(guided).tolist())):
             per_generation[column].append(value)
     end = time.perf_counter()
-    while np.any(jax.device_get(state.evaluation.active)):
-        state, metrics = compiled["finish"].result()(state)
-        record(metrics)
-    final = np.asarray(compiled["evaluate"].result()(state)["eval/mu_mean"]).tolist()
+    evaluate = compiled["evaluate"].result()
+    tests = state.evaluation
+    if np.any(jax.device_get(tests.active)):   # played to its end from its start, as the CLI
+        evaluate(tests.actors, tests.key)
+    agent = PGPS(config, env)
+    actors = (jax.vmap(agent.evaluated_actors) if seeds > 1 else agent.evaluated_actors)(state)
+    final = np.asarray(evaluate(actors, tests.key)["eval/mu_mean"]).tolist()
     wall = time.perf_counter() - start
     end_s = time.perf_counter() - end
     return {"task": task, "seeds": seeds, "wall_s_including_compile": wall,

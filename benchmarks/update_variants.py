@@ -23,7 +23,7 @@ import numpy as np
 import optax
 
 from pgps_jax import buffer as replay
-from pgps_jax import pgps
+from pgps_jax.pgps import PGPS
 from pgps_jax.config import for_task
 from pgps_jax.envs import make_env
 from pgps_jax.td3 import TD3, repeat
@@ -31,7 +31,7 @@ from pgps_jax.td3 import TD3, repeat
 U = int(os.environ.get("U", 2000))     # U=8: a quick CPU check of the script
 env = make_env("halfcheetah")
 config = for_task("halfcheetah")
-state = pgps.make_init(config, env)(jax.random.PRNGKey(0))
+state = jax.jit(PGPS(config, env).init)(jax.random.PRNGKey(0))
 A = env.action_size
 out = {}
 

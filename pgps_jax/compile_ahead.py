@@ -2,7 +2,7 @@
 
 XLA compiles outside Python's global lock, so programs given to `compile_ahead` compile in
 parallel threads, each as soon as it is traced: a run's generation step compiles while its
-`init` does. Programs needed only later (`evaluate`, `finish_evaluation` at the end of a run)
+`init` does. Programs needed only later (`evaluate`, at the end of a run)
 start compiling once the first ones are ready, so that they do not slow those down (tracing
 holds the lock, and XLA's autotuning shares the GPU), and finish in the background while the
 run trains.

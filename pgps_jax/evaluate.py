@@ -13,7 +13,6 @@ seed (the evaluation key is PRNGKey(seed); default: the run's seed + 100);
 out (write μ's result as a CSV in the reference format: ,Step,Mean,Std,Reward1..).
 """
 
-import functools
 import pathlib
 import sys
 from typing import Mapping, Optional, Sequence
@@ -22,40 +21,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pgps_jax import pgps
 from pgps_jax import run_dir as rundir
-from pgps_jax.config import PGPSConfig
-from pgps_jax.rollout import run_episodes
+from pgps_jax.config import EVALUATED_ACTORS, PGPSConfig
 from pgps_jax.errors import EXIT_OK, UsageError, report
+from pgps_jax.pgps import PGPS
 from pgps_jax.tool_args import load_run, parse_args
-
-POLICIES = pgps.EVALUATED
-"""The actors saved in actor_mu.npz, in the order `pgps.evaluate` batches them."""
-
-
-@functools.partial(jax.jit, static_argnums=(0, 1, 4, 5))
-def _returns(config: PGPSConfig, env, actors: jax.Array, key: jax.Array, episodes: int,
-             steps: int) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Returns [A, episodes], their means [A] and stds [A], computed as `pgps.evaluate` does
-    (one batch, the same start states for every actor)."""
-    batch, reset_keys = pgps.evaluation_batch(actors, key, episodes)
-    result = run_episodes(env, pgps.actor_policy(config, env), batch, reset_keys,
-                          jnp.full((batch.shape[0],), steps), steps, record=False)
-    per_actor = [result.returns[i * episodes:(i + 1) * episodes] for i in range(actors.shape[0])]
-    return (jnp.stack(per_actor), jnp.stack([jnp.mean(r) for r in per_actor]),
-            jnp.stack([jnp.std(r) for r in per_actor]))
-
 
 def evaluate_actors(config: PGPSConfig, env, actors: Mapping[str, np.ndarray], key: jax.Array,
                     episodes: Optional[int] = None) -> dict[str, dict]:
-    """{name: {"returns": [episodes], "mean", "std"}} of deterministic episodes of
-    `eval_steps` steps from the start states drawn from `key`."""
-    episodes = config.eval_episodes if episodes is None else episodes
-    stacked = jnp.stack([jnp.asarray(a) for a in actors.values()])
-    returns, means, stds = jax.device_get(
-        _returns(config, env, stacked, key, episodes, config.eval_steps))
-    return {name: {"returns": returns[i], "mean": float(means[i]), "std": float(stds[i])}
-            for i, name in enumerate(actors)}
+    """{name: {"returns": [episodes], "mean", "std"}} of μ, the TD3 actor and the elite
+    (`actors` keyed by `EVALUATED_ACTORS`), as `PGPS.evaluate` plays them: deterministic
+    episodes of `eval_steps` steps from the start states drawn from `key`."""
+    if episodes is not None:
+        config = config.replace(eval_episodes=episodes)
+    stacked = jnp.stack([jnp.asarray(actors[name]) for name in EVALUATED_ACTORS])
+    metrics = jax.device_get(jax.jit(PGPS(config, env).evaluate)(stacked, key))
+    return {name: {"returns": metrics[f"eval/{name}_returns"],
+                   "mean": float(metrics[f"eval/{name}_mean"]),
+                   "std": float(metrics[f"eval/{name}_std"])}
+            for name in EVALUATED_ACTORS}
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -72,7 +56,7 @@ def _evaluate(argv: Sequence[str]) -> int:
         raise UsageError("episodes must be >= 1")
     env = make_env(settings.env)
     key_seed = args.get("seed", settings.seed + 100)
-    results = evaluate_actors(config, env, {p: saved[p] for p in POLICIES},
+    results = evaluate_actors(config, env, {p: saved[p] for p in EVALUATED_ACTORS},
                               jax.random.PRNGKey(key_seed), args.get("episodes"))
     print(f"{args['run']}: {settings.env}, generation {saved['generation']}, "
           f"{saved['env_steps']:,} env steps; {len(results['mu']['returns'])} episodes of "

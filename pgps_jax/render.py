@@ -52,11 +52,10 @@ def _import_mujoco():
     return mujoco
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 4))
-def _episode(config, env, flat_actor, key, steps: int):
-    """qpos [steps + 1, nq], rewards [steps], dones [steps] of one deterministic episode."""
-    from pgps_jax.pgps import actor_policy
-    policy = actor_policy(config, env)
+def _episode(agent, flat_actor, key, steps: int):
+    """qpos [steps + 1, nq], rewards [steps], dones [steps] of one deterministic episode of
+    the agent's env."""
+    env, policy = agent.env, agent.policy
     first = env.reset(key)
 
     def body(state, _):
@@ -143,10 +142,12 @@ def _render(argv: Sequence[str]) -> int:
                          f"render a run of {', '.join(TASK_NAMES)}")
     _import_mujoco()  # before everything that imports mujoco (brax, the envs)
     from pgps_jax.envs import make_env
+    from pgps_jax.pgps import PGPS
     env = make_env(settings.env)
     key = jax.random.split(jax.random.PRNGKey(settings.seed + 100), config.eval_episodes)[0]
     qpos, rewards, dones = jax.device_get(
-        _episode(config, env, jax.numpy.asarray(saved[policy]), key, steps))
+        jax.jit(functools.partial(_episode, PGPS(config, env), steps=steps))(
+            jax.numpy.asarray(saved[policy]), key))
     ended = np.flatnonzero(dones > 0)
     length = int(ended[0]) + 1 if ended.size else steps
     max_fps = args.get("max_fps", 50.0)

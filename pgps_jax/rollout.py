@@ -6,9 +6,7 @@ as soon as every episode has ended, so short episodes cost short loops.
 
 Episodes can also outlive one loop: `begin_episodes` starts a batch, `play` advances it until
 the episodes that `drive` the loop have ended, and the others carry on at the next `play` from
-where they stopped (the test episodes that ride along with the population's rollouts). A
-`Relay` hands some slots to other episodes as soon as those in them have ended (the next test
-evaluation, queued behind the one under way).
+where they stopped (the test episodes that ride along with the population's rollouts).
 
 Termination and truncation: a terminal (unhealthy) step stores discount 0; an
 episode cut at its step limit stores discount 1 so the critic bootstraps through it. A step
@@ -74,32 +72,15 @@ def begin_episodes(env: Env, reset_keys: jax.Array, step_limits: jax.Array) -> E
                         lengths=jnp.zeros((batch,), jnp.int32), unstable=jnp.zeros((batch,), bool))
 
 
-@chex.dataclass(frozen=True)
-class Relay:
-    """Episodes waiting to take over some slots of a batch as soon as the episodes in those
-    slots have all ended (the next test evaluation, queued behind the one under way)."""
-    slots: jax.Array             # [B] bool, the slots it takes over
-    episodes: EpisodeState       # [B] its fresh episodes (read only in `slots`)
-    params: chex.ArrayTree       # [B, ...] its actors (read only in `slots`)
-    pending: jax.Array           # [] bool, not yet taken over
-    hurry: jax.Array             # [] bool, drive the slots' episodes until it has taken over
-    ended_returns: jax.Array     # [B] returns of the episodes it replaced (set when it does)
-
-
 def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeState,
          max_steps: int, record: bool = True, gamma: float = 1.0,
-         drive: jax.Array | None = None, relay: Relay | None = None
-         ) -> tuple[EpisodeState, Transition, jax.Array, Relay | None]:
+         drive: jax.Array | None = None) -> tuple[EpisodeState, Transition, jax.Array]:
     """Steps every live episode until none of those marked in `drive` [B] (default: all) is
     alive; the others advance alongside and may still be alive at the end.
 
-    With a pending `relay`, its episodes and actors replace those in `relay.slots` once these
-    have all ended (between two steps; the rollout goes on past the driving episodes only if
-    `relay.hurry`), and the relay returns with `pending` False and the replaced episodes'
-    returns. Returns the episodes, the transitions [max_steps, B] (row t = the loop's t-th
-    step; empty [0, B] unless `record`), their validity [max_steps, B] and the relay. The loop
-    takes at most `max_steps` steps: no episode that drives it (or that a hurried relay waits
-    for) may have more steps left.
+    Returns the episodes, the transitions [max_steps, B] (row t = the loop's t-th step; empty
+    [0, B] unless `record`) and their validity [max_steps, B]. The loop takes at most
+    `max_steps` steps: no episode that drives it may have more steps left.
     """
     batch = episodes.alive.shape[0]
     drive = jnp.ones((batch,), bool) if drive is None else drive
@@ -111,19 +92,8 @@ def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeStat
                        next_obs=jnp.zeros((rows, batch, env.observation_size)),
                        discount=jnp.zeros((rows, batch)))
 
-    def driving(c):
-        if relay is None:
-            return jnp.any(c["episodes"].alive & drive)
-        waiting = relay.slots & c["relay"].pending & relay.hurry
-        return jnp.any(c["episodes"].alive & (drive | waiting))
-
-    def hand_over(c):
-        """The relay is pending and its slots' episodes have all ended."""
-        r = c["relay"]
-        return r.pending & ~jnp.any(c["episodes"].alive & relay.slots)
-
     def step(c):
-        e, params = c["episodes"], c["params"]
+        e = c["episodes"]
         state, alive = e.env, e.alive
         action = act(params, state.obs)
         nxt = jax.vmap(env.step)(state, action)
@@ -145,27 +115,10 @@ def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeStat
             out["valid"] = c["valid"].at[c["t"]].set(stored)
         return out
 
-    carry = dict(t=jnp.zeros((), jnp.int32), episodes=episodes, params=params,
+    carry = dict(t=jnp.zeros((), jnp.int32), episodes=episodes,
                  transitions=empty, valid=jnp.zeros((rows, batch), bool))
-    if relay is None:
-        c = jax.lax.while_loop(driving, step, carry)
-        return c["episodes"], c["transitions"], c["valid"], None
-
-    def segment(c):
-        """Hands over if due, then steps until the driving episodes end or a hand-over is due."""
-        now = hand_over(c)
-        taken = relay.slots & now
-        r = c["relay"]
-        c = dict(c, episodes=_select(taken, relay.episodes, c["episodes"]),
-                 params=_select(taken, relay.params, c["params"]),
-                 relay=r.replace(pending=r.pending & ~now,
-                                 ended_returns=jnp.where(now, c["episodes"].returns,
-                                                         r.ended_returns)))
-        return jax.lax.while_loop(lambda c: driving(c) & ~hand_over(c), step, c)
-
-    c = jax.lax.while_loop(lambda c: driving(c) | hand_over(c), segment,
-                           dict(carry, relay=relay))
-    return c["episodes"], c["transitions"], c["valid"], c["relay"]
+    c = jax.lax.while_loop(lambda c: jnp.any(c["episodes"].alive & drive), step, carry)
+    return c["episodes"], c["transitions"], c["valid"]
 
 
 def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: jax.Array,
@@ -177,7 +130,7 @@ def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: j
     record: keep the transitions (population rollouts) or only returns (evaluation).
     gamma: discount of the `discounted` returns (J(s_0) of Appendix A).
     """
-    e, transitions, valid, _ = play(env, policy, params,
+    e, transitions, valid = play(env, policy, params,
                                     begin_episodes(env, reset_keys, step_limits), max_steps,
                                     record=record, gamma=gamma)
     return Episodes(returns=e.returns, discounted=e.discounted, lengths=e.lengths,

@@ -47,7 +47,7 @@ LOCK = ".lock"
 LOGS = (METRICS, EVAL, EVAL_POLICIES)
 """The append-only CSV logs, truncated to their checkpointed sizes on resume."""
 
-# metrics.csv: (column, metric key of pgps.generation_step); return_i columns follow `T`.
+# metrics.csv: (column, metric key of PGPS.generation_step); return_i columns follow `T`.
 METRICS_HEAD = (("generation", "gen/generation"), ("env_steps", "gen/total_steps"),
                 ("T", "gen/episode_limit"), ("interaction_steps", "gen/interaction_steps"))
 METRICS_TAIL = (("return_mean", "pop/return_mean"), ("return_std", "pop/return_std"),

@@ -1,16 +1,16 @@
 """The host-side training loop of `python -m pgps_jax.train` (see `pgps_jax.train`).
 
-It calls the compiled phases of a generation (`pgps.make_generation_phases`: play, then learn,
-the state donated) and fetches each generation's metrics with one `jax.device_get`, then
-writes the logs and checkpoints. The test evaluation runs inside the generations, alongside
-the rollouts: it falls due whenever the env steps have reached a multiple of `eval_every`
-(and in the first generation, after the warm-up), tests the actors of the state that
-generation starts from, and is written, under that state's step count, by the generation in
-which its episodes have ended. After the last generation the evaluations still under way or
-queued are played to their end and the final state is evaluated with `pgps.evaluate`.
+It calls the compiled phases of a generation (`PGPS.play`, then `PGPS.learn`, the state
+donated) and fetches each generation's metrics with one `jax.device_get`, then writes the logs
+and checkpoints. The test evaluation runs inside the generations, alongside the rollouts
+(`pgps_jax.evaluation`): it falls due whenever the env steps have reached a multiple of
+`eval_every` (and in the first generation, after the warm-up), tests the actors of the state
+that generation starts from, and is written, under that state's step count, by the generation
+in which its episodes have ended. After the last generation, the evaluation still under way is
+played to its end from its start and the final state is evaluated, both by `PGPS.evaluate`.
 Checkpoints are written every `checkpoint_every` generations, at the end and on SIGINT /
 SIGTERM. The programs compile ahead of time side by side (`compile_ahead`): `init` with the
-two phases, then the two end-of-run programs in the background while the run trains.
+two phases, then `evaluate` in the background while the run trains.
 Nothing here runs inside jit. The run directory's contents are listed in `pgps_jax.run_dir`.
 """
 
@@ -21,15 +21,17 @@ import time
 from typing import TYPE_CHECKING, Any, Mapping, Optional
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from pgps_jax import pgps
 from pgps_jax import run_dir as rundir
 from pgps_jax.checkpoint import Checkpoints
+from pgps_jax.config import EVALUATED_ACTORS
 from pgps_jax.compile_ahead import compile_ahead
 from pgps_jax.networks import flatten as flatten_params
 from pgps_jax.errors import RunFailed, UsageError, WriteFailed
+from pgps_jax.pgps import PGPS
 
 if TYPE_CHECKING:
     from pgps_jax.train import Plan
@@ -94,9 +96,9 @@ class StopRequest:
 class Trainer:
     """The loop's state on the host: logs, checkpoints, counters, progress bar."""
 
-    def __init__(self, p: "Plan", env):
+    def __init__(self, p: "Plan", agent: PGPS):
         self.p, self.run, self.config, self.dir = p, p.run, p.config, p.directory
-        self.env = env
+        self.agent = agent
         self.programs = {}
         self.checkpoints = Checkpoints(self.dir.checkpoints, self.run.keep_checkpoints)
         self.metrics_log = rundir.CsvLog(self.dir / rundir.METRICS,
@@ -123,17 +125,18 @@ class Trainer:
         """
         seed_key, eval_key = (jax.random.PRNGKey(self.run.seed),
                               jax.random.PRNGKey(self.run.seed + 100))
-        c, env = self.config, self.env
-        init = pgps.make_init(c, env)
+        agent = self.agent
+        init = jax.jit(agent.init)
         abstract = jax.eval_shape(init, seed_key, eval_key)  # traced once: `lower` reuses it
-        play, learn = pgps.make_generation_phases(c, env)
+        play = jax.jit(agent.play, donate_argnums=0)
+        learn = jax.jit(agent.learn, donate_argnums=0)
         programs = {"play": (play, (abstract,)),
                     "learn": (learn, jax.eval_shape(play, abstract))}
         if self.p.resume_step is None:
             programs["init"] = (init, (seed_key, eval_key))
+        actors = jax.ShapeDtypeStruct((len(EVALUATED_ACTORS), agent.num_params), jnp.float32)
         self.programs = compile_ahead(programs, later={
-            "finish_evaluation": (pgps.make_finish_evaluation(c, env), (abstract,)),
-            "evaluate": (pgps.make_evaluate(c, env), (abstract,))})
+            "evaluate": (jax.jit(agent.evaluate), (actors, eval_key))})
         if self.p.resume_step is None:
             for log in self.logs.values():
                 log.start()
@@ -210,15 +213,16 @@ class Trainer:
         return state
 
     def final_evaluation(self, state):
-        """Ends the evaluation under way and the one queued behind it, then evaluates the state
-        the run ends with (no later generation will do either). Returns the state."""
-        while bool(state.evaluation.active):
-            state, m = self.programs["finish_evaluation"].result()(state)
-            m = jax.device_get(m)
-            self._record_evaluation(int(m["eval/step"]), m)
-        self._record_evaluation(self.total,
-                                jax.device_get(self.programs["evaluate"].result()(state)))
-        return state
+        """Plays the evaluation under way to its end, then evaluates the state the run ends
+        with (no later generation will do either). Returns the state, its evaluation ended."""
+        evaluate = self.programs["evaluate"].result()
+        tests = state.evaluation
+        if bool(tests.active):
+            self._record_evaluation(int(tests.step),
+                                    jax.device_get(evaluate(tests.actors, tests.key)))
+        final = evaluate(self.agent.evaluated_actors(state), tests.key)
+        self._record_evaluation(self.total, jax.device_get(final))
+        return state.replace(evaluation=tests.replace(active=jnp.asarray(False)))
 
     def _last_eval_text(self) -> str:
         if not self.eval_rows:
@@ -294,7 +298,7 @@ def train(p: "Plan") -> str:
     except ValueError as e:
         raise UsageError(str(e)) from None
     p.directory.write_config(p.resolved)
-    trainer = Trainer(p, env)
+    trainer = Trainer(p, PGPS(p.config, env))
     failed = None
     try:
         return _run(trainer, p)

@@ -1,18 +1,17 @@
 """checkpoint + run_dir: exact TrainState round trip, keep-last-N, atomicity, log truncation."""
 
-import functools
 import json
 
 import jax
 import numpy as np
 import pytest
 
-from pgps_jax import pgps
 from pgps_jax import run_dir as rundir
 from pgps_jax.checkpoint import Checkpoints
 from pgps_jax.config import PGPSConfig
 from pgps_jax.envs import make_env
 from pgps_jax.errors import UsageError
+from pgps_jax.pgps import PGPS, TrainState
 
 TINY = PGPSConfig(pop_size=4, top_k=2, actor_hidden=(8,), critic_hidden=(8,), buffer_size=400,
                   warmup_steps=40, t_init=10, t_max=20, t_interval=100, eval_steps=10,
@@ -21,10 +20,10 @@ TINY = PGPSConfig(pop_size=4, top_k=2, actor_hidden=(8,), critic_hidden=(8,), bu
 
 @pytest.fixture(scope="module")
 def setup():
-    env = make_env("point")
-    state = pgps.make_init(TINY, env)(jax.random.PRNGKey(0))
-    abstract = jax.eval_shape(functools.partial(pgps.init, TINY, env), jax.random.PRNGKey(0))
-    return env, state, abstract
+    agent = PGPS(TINY, make_env("point"))
+    state = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    abstract = jax.eval_shape(agent.init, jax.random.PRNGKey(0))
+    return agent, state, abstract
 
 
 def _equal(a, b) -> bool:
@@ -34,14 +33,14 @@ def _equal(a, b) -> bool:
 
 
 def test_round_trip_is_exact_and_keeps_the_last_n(setup, tmp_path):
-    env, state, abstract = setup
+    _, state, abstract = setup
     checkpoints = Checkpoints(tmp_path / "ckpt", keep=3)
     meta = {"config": {"seed": 0, "pgps": {"pop_size": 4}}, "generation": 5, "logs": {"m": 10}}
     for step in (1, 2, 3, 4, 5):
         checkpoints.save(step, state, {**meta, "generation": step})
     assert checkpoints.steps() == [3, 4, 5] and checkpoints.latest_step() == 5
     restored, restored_meta = checkpoints.restore(5, abstract)
-    assert isinstance(restored, pgps.TrainState)
+    assert isinstance(restored, TrainState)
     assert _equal(restored, state)  # the buffer, optimiser states, β, counters and key
     assert restored_meta == {**meta, "generation": 5}
     assert checkpoints.meta(4)["generation"] == 4
@@ -49,7 +48,7 @@ def test_round_trip_is_exact_and_keeps_the_last_n(setup, tmp_path):
 
 
 def test_a_half_written_checkpoint_is_ignored_and_removed(setup, tmp_path):
-    env, state, abstract = setup
+    _, state, abstract = setup
     directory = tmp_path / "ckpt"
     checkpoints = Checkpoints(directory, keep=3)
     checkpoints.save(1, state, {"generation": 1})
@@ -68,8 +67,8 @@ def test_a_half_written_checkpoint_is_ignored_and_removed(setup, tmp_path):
 
 
 def test_continuing_from_a_restored_state_matches(setup, tmp_path):
-    env, state, abstract = setup
-    step = pgps.make_generation_step(TINY, env, donate=False)
+    agent, state, abstract = setup
+    step = jax.jit(agent.generation_step)
     checkpoints = Checkpoints(tmp_path / "ckpt")
     checkpoints.save(0, state, {})
     restored, _ = checkpoints.restore(0, abstract)

@@ -1,6 +1,5 @@
-"""generation_step end to end on the toy env: schedule, tracing, vmap, determinism, learning."""
-
-import functools
+"""The agent end to end on the toy env: schedule, tracing, vmap, determinism, learning and the
+test evaluations that ride along."""
 
 import jax
 import jax.numpy as jnp
@@ -11,12 +10,20 @@ from pgps_jax import pgps
 from pgps_jax.config import PGPSConfig
 from pgps_jax.envs.point import PointMass
 from pgps_jax.networks import flatten
+from pgps_jax.pgps import PGPS
 
 ENV = PointMass()
 SMALL = PGPSConfig(pop_size=4, top_k=2, actor_hidden=(16, 16), critic_hidden=(16, 16),
                    buffer_size=2000, warmup_steps=100, batch_size=32, ss2_size=32, ss1_size=16,
                    sample_ratio=3, q_filter_start=200, t_init=10, t_max=20, t_interval=150,
                    t_increment=5, eval_episodes=3, eval_steps=20)
+
+
+def programs(config, donate=True):
+    """The agent of `config` on the toy env, its jitted init and generation_step."""
+    agent = PGPS(config, ENV)
+    return (agent, jax.jit(agent.init),
+            jax.jit(agent.generation_step, donate_argnums=0 if donate else ()))
 
 
 @pytest.mark.parametrize("steps, expected", [(0, 400), (99_999, 400), (100_000, 500),
@@ -51,9 +58,10 @@ def test_the_target_actor_starts_each_generation_at_the_elite_only_when_asked():
     elite with `target_actor_from_elite`, else the old target."""
     for from_elite in (True, False):
         config = SMALL.replace(tau=1e-7, target_actor_from_elite=from_elite)
-        state = pgps.make_init(config, ENV)(jax.random.PRNGKey(1))  # a sample beats the elite
+        _, init, step = programs(config, donate=False)
+        state = init(jax.random.PRNGKey(1))  # a sample beats the elite
         target_before = np.asarray(flatten(state.td3.actor_target))
-        new, _ = pgps.make_generation_step(config, ENV, donate=False)(state)
+        new, _ = step(state)
         target_after = np.asarray(flatten(new.td3.actor_target))
         start = np.asarray(new.cem.elite) if from_elite else target_before
         assert not np.allclose(np.asarray(new.cem.elite), target_before, atol=1e-3)
@@ -66,8 +74,8 @@ def tree_equal(a, b):
 
 
 def run(config, seed, generations):
-    state = pgps.make_init(config, ENV)(jax.random.PRNGKey(seed))
-    step = pgps.make_generation_step(config, ENV)
+    _, init, step = programs(config)
+    state = init(jax.random.PRNGKey(seed))
     history = []
     for _ in range(generations):
         state, metrics = step(state)
@@ -76,7 +84,7 @@ def run(config, seed, generations):
 
 
 def test_init_fills_buffer_and_centres_cem_on_td3_actor():
-    state = pgps.make_init(SMALL, ENV)(jax.random.PRNGKey(0))
+    state = programs(SMALL)[1](jax.random.PRNGKey(0))
     assert int(state.total_steps) == 100 and int(state.buffer.size) == 100
     flat_actor = jax.flatten_util.ravel_pytree(state.td3.actor)[0]
     np.testing.assert_array_equal(state.cem.mean, flat_actor)
@@ -85,13 +93,14 @@ def test_init_fills_buffer_and_centres_cem_on_td3_actor():
 
 def test_generation_step_is_traced_once():
     traces = []
+    agent, init, _ = programs(SMALL)
 
     def counted(state):
         traces.append(1)
-        return pgps.generation_step(SMALL, ENV, state)
+        return agent.generation_step(state)
 
     step = jax.jit(counted, donate_argnums=0)
-    state = pgps.make_init(SMALL, ENV)(jax.random.PRNGKey(0))
+    state = init(jax.random.PRNGKey(0))
     for _ in range(4):        # crosses the Q-filter start and a T increase: still one trace
         state, metrics = step(state)
     assert len(traces) == 1
@@ -110,13 +119,12 @@ def test_same_seed_same_state_different_seed_differs():
 
 def test_vmap_over_seeds_equals_separate_runs():
     keys = jax.random.split(jax.random.PRNGKey(11), 3)
-    init = jax.jit(jax.vmap(functools.partial(pgps.init, SMALL, ENV)))
-    step = jax.jit(jax.vmap(functools.partial(pgps.generation_step, SMALL, ENV)))
+    agent, single_init, single_step = programs(SMALL)
+    init = jax.jit(jax.vmap(agent.init))
+    step = jax.jit(jax.vmap(agent.generation_step))
     batched = init(keys)
     for _ in range(3):
         batched, batched_metrics = step(batched)
-    single_init = pgps.make_init(SMALL, ENV)
-    single_step = pgps.make_generation_step(SMALL, ENV)
     for i in range(3):
         state = single_init(keys[i])
         for _ in range(3):
@@ -131,11 +139,11 @@ def test_vmap_over_seeds_equals_separate_runs():
 def test_the_two_phases_compute_one_generation_step():
     """The trainer's two programs (play, then learn) give what generation_step gives, over
     generations in which an evaluation begins and ends."""
-    config = SMALL.replace(eval_every=40)       # due every generation: some are queued
-    whole_state = pgps.make_init(config, ENV)(jax.random.PRNGKey(3))
+    config = SMALL.replace(eval_every=40)       # due every generation
+    agent, init, whole = programs(config)
+    whole_state = init(jax.random.PRNGKey(3))
     phased_state = jax.tree.map(jnp.copy, whole_state)
-    whole = pgps.make_generation_step(config, ENV)
-    play, learn = pgps.make_generation_phases(config, ENV)
+    play, learn = jax.jit(agent.play), jax.jit(agent.learn)
     ended = 0
     for _ in range(5):
         whole_state, whole_metrics = whole(whole_state)
@@ -147,8 +155,9 @@ def test_the_two_phases_compute_one_generation_step():
 
 
 def test_population_layout_and_counters():
-    state = pgps.make_init(SMALL, ENV)(jax.random.PRNGKey(0))
-    play, learn = pgps.make_generation_phases(SMALL, ENV)
+    agent, init, _ = programs(SMALL)
+    state = init(jax.random.PRNGKey(0))
+    play, learn = jax.jit(agent.play), jax.jit(agent.learn)
     elite_before = np.asarray(state.cem.elite)
     state, played = play(state)
     population = np.asarray(played.population)
@@ -192,10 +201,10 @@ def test_training_raises_the_return_of_mu():
     config = SMALL.replace(pop_size=6, top_k=3, t_init=50, t_max=50, increasing_steps=False,
                            buffer_size=20_000, warmup_steps=300, q_filter_start=1000,
                            eval_steps=50, actor_hidden=(32, 32), critic_hidden=(32, 32))
-    state = pgps.make_init(config, ENV)(jax.random.PRNGKey(0))
-    evaluate = pgps.make_evaluate(config, ENV)
+    agent, init, step = programs(config)
+    state = init(jax.random.PRNGKey(0))
+    evaluate = jax.jit(agent.evaluate)
     before = float(evaluate(state)["eval/mu_mean"])
-    step = pgps.make_generation_step(config, ENV)
     for _ in range(25):
         state, _ = step(state)
     after = evaluate(state)
@@ -207,41 +216,34 @@ def test_training_raises_the_return_of_mu():
 
 
 def _check_evaluations(config, seed, generations):
-    """Runs `generations` generations, then finishes the evaluations left. Checks that every
-    evaluation that fell due is reported once, in order, with exactly what `evaluate` gives
-    for the state it fell due in, and that test episodes are neither stored nor counted.
-    Returns [(step, generation reported)] and whether one fell due while another was under
-    way (and was queued)."""
-    state = pgps.make_init(config, ENV)(jax.random.PRNGKey(seed), jax.random.PRNGKey(seed + 100))
-    step = pgps.make_generation_step(config, ENV, donate=False)
-    evaluate = pgps.make_evaluate(config, ENV)
-    expected, reported, queued = {}, [], False
-
-    def check(metrics, generation):
+    """Runs `generations` generations. Checks that every evaluation is reported once, in
+    order, with exactly what `evaluate` gives for the state it began in, that a generation
+    reporting none carries no NaN, and that test episodes are neither stored nor counted.
+    Returns [(step, generation reported)] and the steps at which an evaluation fell due while
+    another was under way."""
+    agent, init, step = programs(config, donate=False)
+    evaluate = jax.jit(agent.evaluate)
+    state = init(jax.random.PRNGKey(seed), jax.random.PRNGKey(seed + 100))
+    expected, reported, waited = {}, [], []
+    for generation in range(generations):
+        tests = state.evaluation
+        if int(state.total_steps) >= int(tests.next_due):
+            if bool(tests.active):
+                waited.append(int(state.total_steps))
+            else:
+                expected[int(state.total_steps)] = evaluate(state)
+        state, metrics = step(state)
+        assert all(np.all(np.isfinite(v)) for k, v in metrics.items() if k.startswith("eval/"))
         if bool(metrics["eval/done"]):
             at = int(metrics["eval/step"])
             reported.append((at, generation))
             for name in ("mu", "td3", "elite"):
                 np.testing.assert_allclose(metrics[f"eval/{name}_returns"],
                                            expected[at][f"eval/{name}_returns"], rtol=1e-5)
-        else:
-            assert np.isnan(float(metrics["eval/mu_mean"]))
-
-    for generation in range(generations):
-        if int(state.total_steps) >= int(state.next_eval):
-            assert not bool(state.evaluation.queued)    # never more than one queued
-            queued |= bool(state.evaluation.active)
-            expected[int(state.total_steps)] = evaluate(state)
-        state, metrics = step(state)
-        check(metrics, generation)
         assert int(state.buffer.size) == int(state.total_steps)
-    finish = pgps.make_finish_evaluation(config, ENV)
-    while bool(state.evaluation.active):
-        state, metrics = finish(state)
-        check(metrics, generations)
     steps = [at for at, _ in reported]
-    assert steps == sorted(expected) and len(steps) == len(set(steps))
-    return reported, queued
+    assert steps == sorted(expected)[:len(steps)] and len(steps) == len(set(steps))
+    return reported, waited
 
 
 def test_evaluation_rides_along_and_equals_standalone_evaluate():
@@ -256,48 +258,43 @@ def test_evaluation_rides_along_and_equals_standalone_evaluate():
     assert reported[0][1] == 1
 
 
-@pytest.mark.parametrize("eval_every, eval_steps", [(40, 20), (60, 25)])
-def test_an_evaluation_due_during_another_is_queued_and_none_is_lost(eval_every, eval_steps):
-    """Due every generation, or due while the one under way still needs a rollout and a half:
-    the next is queued, takes over the test slots when the previous ends, and every
-    evaluation still reports the returns of the state it fell due in."""
-    config = SMALL.replace(eval_every=eval_every, eval_steps=eval_steps)
-    reported, queued = _check_evaluations(config, 2, 7)
-    assert queued and len(reported) >= 4
+def test_an_evaluation_due_during_another_begins_when_that_one_has_ended():
+    """Due every generation, tests twice as long as a rollout: the evaluation that falls due
+    while one is under way begins in the generation after it ends, from that generation's
+    state, and none is reported twice."""
+    config = SMALL.replace(eval_every=40, eval_steps=20)
+    reported, waited = _check_evaluations(config, 2, 7)
+    assert waited and len(reported) >= 2
+    assert all(later > earlier for (earlier, _), (later, _) in zip(reported, reported[1:]))
 
 
-def test_finishing_a_run_plays_the_evaluation_under_way_and_the_queued_one():
-    """Tests of 55 steps in rollouts of 10, due at 100 and 120 steps: after two generations
-    the first is still under way with the second queued; finishing reports both."""
-    config = SMALL.replace(eval_every=120, eval_steps=55)
-    reported, queued = _check_evaluations(config, 4, 2)
-    assert queued
-    assert reported == [(100, 2), (140, 2)]
-
-
-def test_finish_evaluation_completes_the_test_under_way():
-    config = SMALL.replace(eval_every=100)
-    state = pgps.make_init(config, ENV)(jax.random.PRNGKey(3), jax.random.PRNGKey(103))
-    expected = pgps.make_evaluate(config, ENV)(state)
-    state, metrics = pgps.make_generation_step(config, ENV)(state)
-    assert not bool(metrics["eval/done"]) and bool(state.evaluation.active)
-    state, metrics = pgps.make_finish_evaluation(config, ENV)(state)
-    assert bool(metrics["eval/done"]) and int(metrics["eval/step"]) == 100
-    np.testing.assert_allclose(metrics["eval/mu_returns"], expected["eval/mu_returns"], rtol=1e-5)
-    assert not bool(state.evaluation.active)
-    _, again = pgps.make_finish_evaluation(config, ENV)(state)
-    assert not bool(again["eval/done"]) and np.isnan(float(again["eval/mu_mean"]))
+def test_evaluate_takes_a_state_or_actors_and_any_kind_of_key():
+    """`evaluate(state)` is `evaluate(actors of the state, its evaluation key)`; raw and
+    typed (`jax.random.key`) keys both work, in init, generation_step and evaluate."""
+    agent = PGPS(SMALL, ENV)
+    state = jax.jit(agent.init)(jax.random.PRNGKey(3), jax.random.PRNGKey(103))
+    by_state = jax.jit(agent.evaluate)(state)
+    by_actors = jax.jit(agent.evaluate)(agent.evaluated_actors(state), jax.random.PRNGKey(103))
+    jax.tree.map(np.testing.assert_array_equal, by_state, by_actors)
+    assert by_state["eval/mu_returns"].shape == (SMALL.eval_episodes,)
+    typed = jax.jit(agent.init)(jax.random.key(3), jax.random.key(103))
+    typed, metrics = jax.jit(agent.generation_step)(typed)
+    assert int(metrics["gen/generation"]) == 1
+    assert np.all(np.isfinite(jax.jit(agent.evaluate)(typed)["eval/mu_returns"]))
+    with pytest.raises(ValueError, match="key"):
+        agent.evaluate(agent.evaluated_actors(state))
 
 
 def test_generation_step_has_no_host_round_trips():
     """One device program per generation: no host callbacks, infeed/outfeed or send/recv."""
-    state = pgps.make_init(SMALL, ENV)(jax.random.PRNGKey(0))
-    program = pgps.make_generation_step(SMALL, ENV).lower(state).as_text()
+    agent, init, step = programs(SMALL)
+    state = init(jax.random.PRNGKey(0))
+    program = step.lower(state).as_text()
     assert "while" in program                               # the loops stay on the device
     for marker in ("callback", "infeed", "outfeed", "send", "recv", "host"):
         assert marker not in program.lower(), marker
 
     def leaky(state):       # the check is real: a debug print is a host callback
         jax.debug.print("{}", state.total_steps)
-        return pgps.generation_step(SMALL, ENV, state)
+        return agent.generation_step(state)
     assert "callback" in jax.jit(leaky).lower(state).as_text().lower()

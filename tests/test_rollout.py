@@ -1,5 +1,5 @@
 """Population episodes: variable lengths, no auto-reset, terminal vs truncation, NaN guard,
-and the relay that hands test slots to the next evaluation."""
+and episodes that do not drive the loop carrying on across rollouts."""
 
 import jax
 import jax.numpy as jnp
@@ -7,7 +7,7 @@ import numpy as np
 from brax.envs.base import Env, State
 
 from pgps_jax import buffer as replay
-from pgps_jax.rollout import Relay, begin_episodes, play, random_warmup, run_episodes
+from pgps_jax.rollout import begin_episodes, play, random_warmup, run_episodes
 
 
 class Countdown(Env):
@@ -110,40 +110,21 @@ def test_warmup_truncates_at_the_time_limit_without_terminal_discount():
     np.testing.assert_array_equal(transitions.discount[:, 0], 1)
 
 
-def _relay_play(driving_limit, hurry):
-    """Slot 0 drives (reward 1 a step); slots 1-2 (reward 2, limits 3 and 5) hand over to a
-    pending relay (reward 4, limits 4) once both have ended."""
+def test_episodes_that_do_not_drive_the_loop_carry_on_in_the_next_rollout():
+    """Slot 0 drives (limit 2, then a fresh one of 3); slot 1 (limit 6) rides along: it is
+    left alive after the first rollout and continues where it stopped in the second."""
     env = Countdown()
-    keys = jax.random.split(jax.random.PRNGKey(0), 3)
-    episodes = begin_episodes(env, keys, jnp.asarray([driving_limit, 3, 5]))
-    relay = Relay(slots=jnp.asarray([False, True, True]),
-                  episodes=begin_episodes(env, keys, jnp.asarray([0, 4, 4])),
-                  params=jnp.full((3, 1), 3.0), pending=jnp.asarray(True),
-                  hurry=jnp.asarray(hurry), ended_returns=jnp.zeros(3))
-    params = jnp.asarray([[0.0], [1.0], [1.0]])
-    return play(env, constant_policy, params, episodes, max_steps=10,
-                drive=jnp.asarray([True, False, False]), relay=relay)
-
-
-def test_relay_takes_over_its_slots_in_the_step_after_they_all_end():
-    episodes, transitions, valid, relay = _relay_play(driving_limit=8, hurry=False)
-    assert not bool(relay.pending)
-    np.testing.assert_array_equal(relay.ended_returns[1:], [6.0, 10.0])
-    # handed over after step 5, the relay's episodes ran steps 6-8 from their own start
-    np.testing.assert_array_equal(episodes.lengths, [8, 3, 3])
-    np.testing.assert_array_equal(episodes.returns, [8.0, 12.0, 12.0])
-    np.testing.assert_array_equal(episodes.alive, [False, True, True])
-    np.testing.assert_array_equal(transitions.obs[5:8, 1, 0], [0, 1, 2])
-    np.testing.assert_array_equal(valid.sum(0), [8, 6, 8])
-
-
-def test_relay_waits_for_a_later_rollout_unless_hurried():
-    episodes, _, _, relay = _relay_play(driving_limit=2, hurry=False)
-    assert bool(relay.pending)
-    np.testing.assert_array_equal(episodes.lengths, [2, 2, 2])
-    # hurried: the slots' episodes are driven to their end, then the relay takes over
-    episodes, _, _, relay = _relay_play(driving_limit=2, hurry=True)
-    assert not bool(relay.pending)
-    np.testing.assert_array_equal(relay.ended_returns[1:], [6.0, 10.0])
-    np.testing.assert_array_equal(episodes.lengths, [2, 0, 0])
-    np.testing.assert_array_equal(episodes.alive, [False, True, True])
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    drive = jnp.asarray([True, False])
+    params = jnp.asarray([[0.0], [1.0]])        # rewards 1 and 2 a step
+    episodes, _, _ = play(env, constant_policy, params,
+                          begin_episodes(env, keys, jnp.asarray([2, 6])), 6, drive=drive)
+    np.testing.assert_array_equal(episodes.lengths, [2, 2])
+    np.testing.assert_array_equal(episodes.alive, [False, True])
+    fresh = begin_episodes(env, keys[:1], jnp.asarray([3]))
+    episodes = jax.tree.map(lambda a, b: jnp.concatenate([a, b[1:]]), fresh, episodes)
+    episodes, transitions, valid = play(env, constant_policy, params, episodes, 6, drive=drive)
+    np.testing.assert_array_equal(episodes.lengths, [3, 5])
+    np.testing.assert_array_equal(episodes.returns, [3.0, 10.0])
+    np.testing.assert_array_equal(transitions.obs[:3, 1, 0], [2, 3, 4])   # from where it was
+    np.testing.assert_array_equal(valid.sum(0), [3, 3])

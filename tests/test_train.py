@@ -1,20 +1,19 @@
 """`python -m pgps_jax.train` end to end on a tiny run: every output file and its columns,
 re-evaluation, bad inputs (message, non-zero exit, nothing half-written) and a NaN stop."""
 
-import functools
 import pathlib
 
 import imageio.v3 as iio
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from pgps_jax import pgps, train
+from pgps_jax import train
 from pgps_jax.errors import EXIT_FAILED
 from pgps_jax import run_dir as rundir
+from pgps_jax.pgps import PGPS
 from pgps_jax.run_config import CONFIG_DIR, from_dict
 
 from train_cli import (checkpoint_steps, leftovers, read_csv, run, tensorboard_tags, tiny)
@@ -192,15 +191,14 @@ def test_resume_by_directory_refuses_other_explicit_settings(reference, cache, t
 def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(
         monkeypatch, tmp_path, capsys):
     """The learning phase is wrapped to report a NaN critic loss at generation 3."""
-    def poisoned(config, env):
-        def learn(state, played):
-            state, metrics = pgps.learn_generation(config, env, state, played)
-            loss = jnp.where(metrics["gen/generation"] == 3, jnp.nan, metrics["td3/critic_loss"])
-            return state, {**metrics, "td3/critic_loss": loss}
-        return (jax.jit(functools.partial(pgps.play_generation, config, env)),
-                jax.jit(learn, donate_argnums=(0,)))
+    learn = PGPS.learn
 
-    monkeypatch.setattr(pgps, "make_generation_phases", poisoned)
+    def poisoned(agent, state, played):
+        state, metrics = learn(agent, state, played)
+        loss = jnp.where(metrics["gen/generation"] == 3, jnp.nan, metrics["td3/critic_loss"])
+        return state, {**metrics, "td3/critic_loss": loss}
+
+    monkeypatch.setattr(PGPS, "learn", poisoned)
     run_dir = tmp_path / "nan"
     overrides = tiny("checkpoint_every=1", f"run_dir={run_dir}")
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
