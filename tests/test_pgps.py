@@ -1,6 +1,8 @@
 """The agent end to end on the toy env: schedule, tracing, vmap, determinism, learning and the
 test evaluations that ride along."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,8 +21,10 @@ SMALL = PGPSConfig(pop_size=4, top_k=2, actor_hidden=(16, 16), critic_hidden=(16
                    t_increment=5, eval_episodes=3, eval_steps=20)
 
 
+@functools.lru_cache(maxsize=None)
 def programs(config, donate=True):
-    """The agent of `config` on the toy env, its jitted init and generation_step."""
+    """The agent of `config` on the toy env, its jitted init and generation_step (made once
+    per configuration, so that the tests of one configuration share their programs)."""
     agent = PGPS(config, ENV)
     return (agent, jax.jit(agent.init),
             jax.jit(agent.generation_step, donate_argnums=0 if donate else ()))
