@@ -112,6 +112,7 @@ class PGPS:
 
     @property
     def evaluation_config(self) -> EvaluationConfig:
+        """The test evaluation's settings (the config's `eval_*` fields)."""
         c = self.config
         return EvaluationConfig(every=c.eval_every, episodes=c.eval_episodes,
                                 steps=c.eval_steps)
