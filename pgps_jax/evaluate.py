@@ -27,6 +27,7 @@ from pgps_jax.errors import EXIT_OK, UsageError, report
 from pgps_jax.pgps import PGPS
 from pgps_jax.tool_args import load_run, parse_args
 
+
 def evaluate_actors(config: PGPSConfig, env, actors: Mapping[str, np.ndarray], key: jax.Array,
                     episodes: Optional[int] = None) -> dict[str, dict]:
     """{name: {"returns": [episodes], "mean", "std"}} of μ, the TD3 actor and the elite

@@ -142,9 +142,11 @@ def _render(argv: Sequence[str]) -> int:
                          f"render a run of {', '.join(TASK_NAMES)}")
     _import_mujoco()  # before everything that imports mujoco (brax, the envs)
     from pgps_jax.envs import make_env
+    from pgps_jax.evaluation import start_keys
     from pgps_jax.pgps import PGPS
     env = make_env(settings.env)
-    key = jax.random.split(jax.random.PRNGKey(settings.seed + 100), config.eval_episodes)[0]
+    # the start state of the run's first test episode
+    key = start_keys(jax.random.PRNGKey(settings.seed + 100), 1, config.eval_episodes)[0]
     qpos, rewards, dones = jax.device_get(
         jax.jit(functools.partial(_episode, PGPS(config, env), steps=steps))(
             jax.numpy.asarray(saved[policy]), key))

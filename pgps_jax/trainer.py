@@ -29,7 +29,6 @@ from pgps_jax import run_dir as rundir
 from pgps_jax.checkpoint import Checkpoints
 from pgps_jax.config import EVALUATED_ACTORS
 from pgps_jax.compile_ahead import compile_ahead
-from pgps_jax.networks import flatten as flatten_params
 from pgps_jax.errors import RunFailed, UsageError, WriteFailed
 from pgps_jax.pgps import PGPS
 
@@ -134,7 +133,7 @@ class Trainer:
                     "learn": (learn, jax.eval_shape(play, abstract))}
         if self.p.resume_step is None:
             programs["init"] = (init, (seed_key, eval_key))
-        actors = jax.ShapeDtypeStruct((len(EVALUATED_ACTORS), agent.num_params), jnp.float32)
+        actors = jax.eval_shape(agent.evaluated_actors, abstract)
         self.programs = compile_ahead(programs, later={
             "evaluate": (jax.jit(agent.evaluate), (actors, eval_key))})
         if self.p.resume_step is None:
@@ -274,8 +273,8 @@ class Trainer:
 
     def save_actors(self, state):
         """The μ, TD3 and elite actors of `state` as flat vectors in actor_mu.npz."""
-        actors = jax.device_get({"mu": state.cem.mean, "elite": state.cem.elite,
-                                 "td3": flatten_params(state.td3.actor)})
+        actors = dict(zip(EVALUATED_ACTORS,
+                          jax.device_get(self.agent.evaluated_actors(state))))
         rundir.save_actors(self.dir / rundir.ACTOR, self.generation, self.total, **actors)
 
     def close(self):
