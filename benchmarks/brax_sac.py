@@ -8,7 +8,7 @@ the wall-clock including compilation and the evaluation returns.
 Brax 0.14.2 calls `jax.device_put_replicated`, which current JAX has removed; it is mapped to
 `jax.device_put` of the stacked tree here.
 
-    python benchmarks/brax_sac.py --task halfcheetah --steps 1000000
+    python -m benchmarks.brax_sac --task halfcheetah --steps 1000000
 """
 
 import argparse

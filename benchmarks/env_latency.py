@@ -10,7 +10,7 @@ the MJX backend). Also at batch 60, our env with Newton 2 iterations (the more a
 slower settings of BENCHMARKS.md). Every function is compiled before any is timed; a figure
 is the median of 5 timed calls of 100 steps (Brax's env: 2 calls of 20 steps, it is slow).
 
-    python benchmarks/env_latency.py  # table on stdout, benchmarks/results/env_latency.json
+    python -m benchmarks.env_latency  # table on stdout, benchmarks/results/env_latency.json
 """
 
 import argparse

@@ -2,14 +2,14 @@
 
 Trains `--seeds` seeds of PGPS (the paper's configuration `for_task(task)` with `--set`
 overrides, on the task's env with `--env` keyword arguments) for `--steps` env steps through
-the public API, as the README's five-seed snippet does, and writes a JSON with
-- the μ evaluation curve of every seed (`eval/step`, `eval/mu_mean`, every `eval_every` steps);
+the CLI's loop (`pgps_jax.cli.loop`, the seeds vmapped), and writes a JSON with
+- the μ evaluation curve of every seed (`eval/step`, `eval/mu_mean`, every 10,000 steps);
 - μ, the TD3 actor and the elite at the end, each on 10 deterministic episodes from fresh
   start states (PRNGKey(10_000 + seed)), per seed;
 - per generation and seed: episode limit T, interaction steps, population mean and elite
   return, the TD3 actor's return, whether the guided loss trained it, β and the CEM variance.
 
-    python benchmarks/learning.py --task ant --steps 500000 --env start_pose=qpos0 \
+    python -m benchmarks.learning --task ant --steps 500000 --env start_pose=qpos0 \
         --set fell_behind_rule=mean --out benchmarks/results/learning_ant_qpos0_mean.json
 """
 
@@ -24,13 +24,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pgps_jax.config import EVALUATED_ACTORS, for_task
+from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, for_task
+from pgps_jax.agent.pgps import PGPS
+from pgps_jax.cli import loop
 from pgps_jax.envs import make_env
-from pgps_jax.pgps import PGPS
 
 PER_GENERATION = {"limit": "gen/episode_limit", "interaction_steps": "gen/interaction_steps",
                   "return_mean": "pop/return_mean", "elite_return": "cem/elite_return",
-                  "td3_return": "td3/return", "guided": "td3/fell_behind", "beta": "td3/beta",
+                  "td3_return": "td3/return", "guided": "td3/guided_loss", "beta": "td3/beta",
                   "cem_var": "cem/var_mean"}
 FINAL_KEY_OFFSET = 10_000
 
@@ -48,48 +49,34 @@ def _assignments(pairs: list[str]) -> dict:
 
 
 def train(task: str, steps: int, seeds: int, overrides: dict, env_kwargs: dict) -> dict:
-    config = for_task(task, **overrides)
-    env = make_env(task, **env_kwargs)
+    agent = PGPS(for_task(task, **overrides), make_env(task, **env_kwargs), EvaluationConfig())
     keys = jax.random.split(jax.random.PRNGKey(0), seeds)
     eval_keys = jax.vmap(lambda s: jax.random.PRNGKey(s + 100))(jnp.arange(seeds))
-    agent = PGPS(config, env)
-    init = jax.jit(jax.vmap(agent.init))
-    step = jax.jit(jax.vmap(agent.generation_step), donate_argnums=0)
-    evaluate = jax.jit(jax.vmap(agent.evaluate))
     start = time.perf_counter()
-    state = init(keys, eval_keys)
+    programs = loop.Programs.compile(agent, keys, eval_keys, seeds=True)
+    state = programs["init"](keys, eval_keys)
     curves = [[] for _ in range(seeds)]
     per_generation = {name: [] for name in PER_GENERATION}
-
-    def record(metrics):
-        done, at, mu = jax.device_get([metrics[k] for k in ("eval/done", "eval/step",
-                                                            "eval/mu_mean")])
-        for seed in np.flatnonzero(done):
-            curves[seed].append((int(at[seed]), float(mu[seed])))
-
     while int(np.min(jax.device_get(state.total_steps))) < steps:
-        state, metrics = step(state)
-        record(metrics)
-        values = jax.device_get({name: metrics[key] for name, key in PER_GENERATION.items()})
-        for name, value in values.items():
-            per_generation[name].append(np.asarray(value).tolist())
+        state, done = loop.generation(programs, state)
+        m = done.metrics
+        for seed in np.flatnonzero(m["eval/done"]):
+            curves[seed].append((int(m["eval/step"][seed]), float(m["eval/mu_mean"][seed])))
+        for name, key in PER_GENERATION.items():
+            per_generation[name].append(np.asarray(m[key]).tolist())
         generation = len(per_generation["limit"])
         if generation % 20 == 0:
-            steps_now = np.asarray(jax.device_get(state.total_steps)).tolist()
-            print(f"generation {generation}: steps {steps_now}"
+            print(f"generation {generation}: steps {np.asarray(m['gen/total_steps']).tolist()}"
                   f" μ {[c[-1][1] if c else None for c in curves]}"
                   f" ({time.perf_counter() - start:.0f} s)", flush=True)
-    tests = state.evaluation
-    active, began = jax.device_get((tests.active, tests.step))
-    if np.any(active):   # the evaluations under way, played to their end from their start
-        ended = jax.device_get(evaluate(tests.actors, tests.key))["eval/mu_mean"]
-        for seed in np.flatnonzero(active):
-            curves[seed].append((int(began[seed]), float(ended[seed])))
     final_keys = jax.vmap(lambda s: jax.random.PRNGKey(s + FINAL_KEY_OFFSET))(jnp.arange(seeds))
-    final = jax.device_get(evaluate(jax.vmap(agent.evaluated_actors)(state), final_keys))
+    state, finished = loop.finish(programs, state, final_keys)
+    for seed in np.flatnonzero(finished.unfinished_active):  # played from its start
+        curves[seed].append((int(finished.unfinished_step[seed]),
+                             float(finished.unfinished["eval/mu_mean"][seed])))
     return {"task": task, "steps": steps, "seeds": seeds, "overrides": overrides,
             "env": env_kwargs, "wall_s": time.perf_counter() - start,
-            "final": {name: np.asarray(final[f"eval/{name}_mean"]).tolist()
+            "final": {name: np.asarray(finished.final[f"eval/{name}_mean"]).tolist()
                       for name in EVALUATED_ACTORS},
             "curves": curves, "per_generation": per_generation}
 

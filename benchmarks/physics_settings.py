@@ -18,9 +18,9 @@ for random and for sinusoidal actions; and the mean per-env difference of that r
 the model's settings, relative to the model's mean, with the standard error of the paired
 difference.
 
-    python benchmarks/physics_settings.py --steps 1000 --extra newton:2:4:off,newton:1:4:on \
+    python -m benchmarks.physics_settings --steps 1000 --extra newton:2:4:off,newton:1:4:on \
         --out benchmarks/results/physics_settings_sweep.json
-    python benchmarks/physics_settings.py --steps 10000 --no-reference \
+    python -m benchmarks.physics_settings --steps 10000 --no-reference \
         --out benchmarks/results/physics_settings_stability.json
 """
 

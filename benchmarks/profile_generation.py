@@ -8,7 +8,7 @@ device idle time, kernel and memory-copy counts by direction, and the kernels ta
 time. Also timed at the same state, each jitted alone: the rollout, `td3.train` with the full
 buffer and with a 10k-row buffer (does gathering from 1M rows cost more?).
 
-    python benchmarks/profile_generation.py
+    python -m benchmarks.profile_generation
 """
 
 import argparse
@@ -24,20 +24,19 @@ import time
 import jax
 import jax.numpy as jnp
 
-sys.path.insert(0, os.path.dirname(__file__))
-from throughput import timed  # noqa: E402  (sibling benchmark)
-
-from pgps_jax import buffer as replay  # noqa: E402
-from pgps_jax.pgps import PGPS, episode_limit  # noqa: E402
-from pgps_jax.config import for_task  # noqa: E402
-from pgps_jax.envs import make_env  # noqa: E402
+from benchmarks.timing import timed
+from pgps_jax.agent import buffer as replay
+from pgps_jax.agent.config import EvaluationConfig, for_task
+from pgps_jax.agent.pgps import PGPS, episode_limit
+from pgps_jax.envs import make_env
 
 SMOKE = "--smoke" in sys.argv
+TESTS = EvaluationConfig(steps=20) if SMOKE else EvaluationConfig()
 
 
 def late_state(config, env):
     """The state of a run at 600k steps: full buffer of random rows, an evaluation begun."""
-    state = jax.jit(PGPS(config, env).init)(jax.random.PRNGKey(0))
+    state = jax.jit(PGPS(config, env, TESTS).init)(jax.random.PRNGKey(0))
     capacity = config.buffer_size
     k = jax.random.split(jax.random.PRNGKey(1), 5)
     data = replay.Transition(
@@ -116,10 +115,10 @@ def main():
     if SMOKE:
         config = config.replace(t_init=10, t_max=20, t_interval=1000, buffer_size=5000,
                                 warmup_steps=200, q_filter_start=400, actor_hidden=(16, 16),
-                                critic_hidden=(16, 16), eval_steps=20, sample_ratio=2)
+                                critic_hidden=(16, 16), sample_ratio=2)
     env = make_env("halfcheetah")
     state = late_state(config, env)
-    agent = PGPS(config, env)
+    agent = PGPS(config, env, TESTS)
     step = jax.jit(agent.generation_step)
     first_s, generation_s = timed(step, state, repeats=3)
 

@@ -13,7 +13,7 @@ With --full-run TASK: the wall-clock of a whole 1M-step run (as the CLI runs it,
 I/O: a test evaluation begun every 10,000 steps inside each generation) for 1 seed and for 5
 seeds vmapped; compile time reported separately.
 
-    python benchmarks/throughput.py --tasks halfcheetah hopper --full-run halfcheetah
+    python -m benchmarks.throughput --tasks halfcheetah hopper --full-run halfcheetah
 """
 
 import argparse
@@ -29,34 +29,20 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-sys.path.insert(0, os.path.dirname(__file__))
-from env_latency import bare_rollout  # noqa: E402  (sibling benchmark: the physics floor)
-
-from pgps_jax import buffer as replay  # noqa: E402
-from pgps_jax import cem  # noqa: E402
-from pgps_jax.compile_ahead import compile_ahead  # noqa: E402
-from pgps_jax.config import for_task  # noqa: E402
-from pgps_jax.envs import TASKS, make_env  # noqa: E402
-from pgps_jax.pgps import PGPS, episode_limit  # noqa: E402
-from pgps_jax.rollout import run_episodes  # noqa: E402
+from benchmarks.env_latency import bare_rollout
+from benchmarks.timing import timed
+from pgps_jax.agent import buffer as replay
+from pgps_jax.agent import cem
+from pgps_jax.agent.config import EvaluationConfig, for_task
+from pgps_jax.agent.pgps import PGPS, episode_limit
+from pgps_jax.agent.rollout import run_episodes
+from pgps_jax.cli import loop
+from pgps_jax.envs import TASKS, make_env
 
 SMOKE = "--smoke" in sys.argv
-EVAL_EVERY = 10_000 if not SMOKE else 200
+TESTS = EvaluationConfig(every=10_000) if not SMOKE else EvaluationConfig(every=200, steps=20)
 TOTAL_STEPS = 1_000_000 if not SMOKE else 1000
 UPDATE_STEPS = 1000 if not SMOKE else 10    # updates per timed scan of the update benchmarks
-
-
-def timed(fn, *args, repeats=5):
-    """(seconds of the first call = compile + run, median seconds of later calls)."""
-    start = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - start)
-    return first, float(np.median(times))
 
 
 def sequential_steps_per_run(config) -> int:
@@ -140,14 +126,14 @@ def bench_config(task: str):
         return for_task(task)
     return for_task(task, t_init=10, t_max=20, t_interval=1000, buffer_size=5000,
                     warmup_steps=200, q_filter_start=400, actor_hidden=(16, 16),
-                    critic_hidden=(16, 16), eval_steps=20, sample_ratio=2)
+                    critic_hidden=(16, 16), sample_ratio=2)
 
 
 def components(task: str) -> dict:
     config = bench_config(task)
     env = make_env(task)
     n, t_max = config.pop_size, config.t_max
-    agent = PGPS(config, env)
+    agent = PGPS(config, env, TESTS)
     td3, unflatten, policy = agent.td3, agent.actor, agent.policy
     init = jax.jit(agent.init)
     init_s, _ = timed(init, jax.random.PRNGKey(0), repeats=0)
@@ -164,7 +150,7 @@ def components(task: str) -> dict:
     evaluate = jax.jit(agent.evaluate)
     _, eval_s = timed(evaluate, agent.evaluated_actors(state), jax.random.PRNGKey(100),
                       repeats=3)
-    qfilter = jax.jit(lambda s, k: agent._population(s, k, k, k))
+    qfilter = jax.jit(lambda s, k: agent.population(s, k, k, k))
     _, qfilter_s = timed(qfilter, state, key)
     returns = jax.random.normal(key, (n,))
     tell = jax.jit(functools.partial(cem.tell, top_k=config.top_k, sigma_limit=config.sigma_limit,
@@ -206,7 +192,7 @@ def components(task: str) -> dict:
     sequential = sequential_steps_per_run(config)
     updates = TOTAL_STEPS
     env_ms = rollout_s / max(int(lengths.max()), 1) * 1e3
-    eval_ms = eval_s / config.eval_steps * 1e3
+    eval_ms = eval_s / TESTS.steps * 1e3
     return {
         "task": task, "pop_size": n, "T": t_max, "episode_lengths": lengths.tolist(),
         "init_compile_and_run_s": init_s,
@@ -232,94 +218,50 @@ def components(task: str) -> dict:
 
 
 # ---------------------------------------------------------------------------- full 1M-step run
-def compile_run(config, env, keys, eval_keys, vmapped: bool, end_of_run: bool = True):
-    """A run's programs compiled as the CLI compiles them: `init` and the two phases of a
-    generation side by side, then (with `end_of_run`) `evaluate` in the background. With `vmapped`, each program is vmapped over the seeds of `keys`.
-    Returns {name: future of its compiled program}, the `time.perf_counter()` at which the
-    compilation began (once `init`'s output shapes were known) and the seconds until the two
-    phases, and until `init` as well, were compiled."""
-    agent = PGPS(config, env)
-    batched = jax.vmap if vmapped else (lambda fn: fn)
-
-    def jit(fn, donate=True):
-        return jax.jit(batched(fn), donate_argnums=0 if donate else ())
-    programs = {"init": jit(agent.init, donate=False), "play": jit(agent.play),
-                "learn": jit(agent.learn), "evaluate": jit(agent.evaluate, donate=False)}
-    abstract = jax.eval_shape(programs["init"], keys, eval_keys)
-    start = time.perf_counter()
-    args = {"init": (keys, eval_keys), "play": (abstract,),
-            "learn": jax.eval_shape(programs["play"], abstract),
-            "evaluate": (jax.eval_shape(batched(agent.evaluated_actors), abstract), eval_keys)}
-    compiled = compile_ahead(
-        {name: (programs[name], args[name]) for name in ("init", "play", "learn")},
-        later={"evaluate": (programs["evaluate"], args["evaluate"])} if end_of_run else None)
-    compiled["play"].result(), compiled["learn"].result()
-    phases_s = time.perf_counter() - start
-    compiled["init"].result()
-    return compiled, start, phases_s, time.perf_counter() - start
-
-
 def full_run(task: str, seeds: int) -> dict:
-    """A whole 1M-step run as the CLI runs it, without file I/O: programs compiled ahead of
-    time side by side (`init` and the two phases of a generation, then the two end-of-run
-    programs), a test evaluation begun every 10k steps inside each generation, the one
-    under way finished and the final state evaluated at the end. Wall-clock, compile time,
-    generations (each timed in its two phases, with a wait between them, and whether it
-    trained on the augmented loss) and the eval curve of μ."""
-    config = bench_config(task).replace(eval_every=EVAL_EVERY)
-    env = make_env(task)
+    """A whole 1M-step run through the CLI's loop (`pgps_jax.cli.loop`), without file I/O:
+    programs compiled ahead of time side by side, a test evaluation begun every 10,000 steps
+    inside each generation, the one under way finished and the final state evaluated at the
+    end. Wall-clock, compile time, generations (each timed in its two phases, with a wait
+    between them, and whether it trained on the augmented loss) and the eval curve of μ."""
+    agent = PGPS(bench_config(task), make_env(task), TESTS)
     keys = jax.random.split(jax.random.PRNGKey(0), seeds)
     eval_keys = jax.vmap(lambda s: jax.random.PRNGKey(s + 100))(jnp.arange(seeds))
     if seeds == 1:
         keys, eval_keys = keys[0], eval_keys[0]
-    compiled, start, step_compile_s, compile_s = compile_run(config, env, keys, eval_keys,
-                                                             vmapped=seeds > 1)
-    init, play, learn = (compiled[name].result() for name in ("init", "play", "learn"))
+    start = time.perf_counter()
+    programs = loop.Programs.compile(agent, keys, eval_keys, seeds=seeds > 1)
+    programs.futures["play"].result(), programs.futures["learn"].result()
+    phases_compile_s = time.perf_counter() - start
+    init = programs["init"]
+    compile_s = time.perf_counter() - start
     state = jax.block_until_ready(init(keys, eval_keys))
     init_run_s = time.perf_counter() - start - compile_s
-    curve, generations = [], 0
+    curve = []
     per_generation = {"total_s": [], "play_s": [], "learn_s": [], "episode_limit": [],
                       "interaction_steps": [], "guided": []}
-
-    def record(metrics, *extra):
-        """Adds an evaluation that ended to the curve; returns the `extra` metrics (host)."""
-        done, step_at, mu, *values = jax.device_get(
-            [metrics[k] for k in ("eval/done", "eval/step", "eval/mu_mean", *extra)])
-        if np.any(done):
-            curve.append((np.asarray(step_at).tolist(), np.asarray(mu).tolist()))
-        return values
-
     while int(np.min(jax.device_get(state.total_steps))) < TOTAL_STEPS:
-        t = time.perf_counter()
-        played = jax.block_until_ready(play(state))    # one wait more: the phases timed apart
-        t_played = time.perf_counter()
-        state, metrics = learn(*played)
-        generations += 1
-        limit, steps, guided = record(metrics, "gen/episode_limit", "gen/interaction_steps",
-                                      "td3/fell_behind")
-        t_learned = time.perf_counter()
-        for column, value in (("total_s", t_learned - t), ("play_s", t_played - t),
-                              ("learn_s", t_learned - t_played),
-                              ("episode_limit", np.asarray(limit).max().tolist()),
-                              ("interaction_steps", np.asarray(steps).max().tolist()),
-                              ("guided", np.asarray(guided).tolist())):
+        state, done = loop.generation(programs, state, time_phases=True)
+        m = done.metrics
+        if np.any(m["eval/done"]):
+            curve.append((np.asarray(m["eval/step"]).tolist(),
+                          np.asarray(m["eval/mu_mean"]).tolist()))
+        for column, value in (("total_s", done.seconds), ("play_s", done.play_seconds),
+                              ("learn_s", done.seconds - done.play_seconds),
+                              ("episode_limit", np.max(m["gen/episode_limit"]).tolist()),
+                              ("interaction_steps", np.max(m["gen/interaction_steps"]).tolist()),
+                              ("guided", np.asarray(m["td3/guided_loss"]).tolist())):
             per_generation[column].append(value)
     end = time.perf_counter()
-    evaluate = compiled["evaluate"].result()
-    tests = state.evaluation
-    if np.any(jax.device_get(tests.active)):   # played to its end from its start, as the CLI
-        evaluate(tests.actors, tests.key)
-    agent = PGPS(config, env)
-    actors = (jax.vmap(agent.evaluated_actors) if seeds > 1 else agent.evaluated_actors)(state)
-    final = np.asarray(evaluate(actors, tests.key)["eval/mu_mean"]).tolist()
+    state, finished = loop.finish(programs, state)
     wall = time.perf_counter() - start
-    end_s = time.perf_counter() - end
     return {"task": task, "seeds": seeds, "wall_s_including_compile": wall,
-            "compile_s": compile_s, "generation_phases_compile_s": step_compile_s,
+            "compile_s": compile_s, "generation_phases_compile_s": phases_compile_s,
             "init_run_s": init_run_s, "generations_s": sum(per_generation["total_s"]),
-            "end_s": end_s, "generations": generations, "evaluations": len(curve) + 1,
-            "final_eval_mu_mean": final, "eval_curve_every_10th": curve[::10],
-            "per_generation": per_generation}
+            "end_s": time.perf_counter() - end, "generations": len(per_generation["total_s"]),
+            "evaluations": len(curve) + 1,
+            "final_eval_mu_mean": np.asarray(finished.final["eval/mu_mean"]).tolist(),
+            "eval_curve_every_10th": curve[::10], "per_generation": per_generation}
 
 
 def main():

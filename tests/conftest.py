@@ -6,8 +6,8 @@ import pathlib
 
 from train_cli import FAST_COMPILE_FLAGS, run
 
-# The tests' own programs compile once and run briefly: XLA spends less time optimising them
-# (the CLI subprocesses, which run a program many times from the compilation cache, do not).
+# The tests' programs, theirs and their CLI subprocesses', compile once and run briefly: XLA
+# spends less time optimising them.
 os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *FAST_COMPILE_FLAGS])
 
 import jax  # noqa: E402  (after XLA_FLAGS)
@@ -21,7 +21,7 @@ REDUCED = ("seed=1", "total_steps=600", "eval_every=200", "checkpoint_every=2",
            "pgps.critic_hidden=[16]", "pgps.batch_size=16", "pgps.buffer_size=2000",
            "pgps.warmup_steps=200", "pgps.t_init=20", "pgps.t_max=40", "pgps.t_interval=400",
            "pgps.q_filter_start=400", "pgps.sample_ratio=4", "pgps.ss1_size=8",
-           "pgps.ss2_size=16", "pgps.eval_episodes=2", "pgps.eval_steps=50")
+           "pgps.ss2_size=16", "eval_episodes=2", "eval_steps=50")
 """A PGPS of 2 actors with small networks, episodes of 20-40 steps, a 200-step warm-up and
 a 600-step budget: a few generations on real MJX physics in seconds once compiled; the
 Q-filter starts at 400 steps, so it runs too."""

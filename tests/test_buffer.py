@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pgps_jax import buffer as replay
+from pgps_jax.agent import buffer as replay
 
 
 def rows(values, obs_size=2):

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pgps_jax import cem
+from pgps_jax.agent import cem
 
 
 def numpy_tell(mean, damping, population, fitness, k, sigma_limit, tau_sigma, divide_by_k):

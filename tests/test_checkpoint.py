@@ -6,21 +6,21 @@ import jax
 import numpy as np
 import pytest
 
-from pgps_jax import run_dir as rundir
-from pgps_jax.checkpoint import Checkpoints
-from pgps_jax.config import PGPSConfig
+from pgps_jax.cli import run_dir as rundir
+from pgps_jax.cli.checkpoint import Checkpoints
+from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
 from pgps_jax.envs import make_env
-from pgps_jax.errors import UsageError
-from pgps_jax.pgps import PGPS, TrainState
+from pgps_jax.cli.errors import UsageError
+from pgps_jax.agent.pgps import PGPS, TrainState
 
 TINY = PGPSConfig(pop_size=4, top_k=2, actor_hidden=(8,), critic_hidden=(8,), buffer_size=400,
-                  warmup_steps=40, t_init=10, t_max=20, t_interval=100, eval_steps=10,
+                  warmup_steps=40, t_init=10, t_max=20, t_interval=100,
                   sample_ratio=2, batch_size=8, ss1_size=4, ss2_size=8, q_filter_start=60)
 
 
 @pytest.fixture(scope="module")
 def setup():
-    agent = PGPS(TINY, make_env("point"))
+    agent = PGPS(TINY, make_env("point"), EvaluationConfig(steps=10))
     state = jax.jit(agent.init)(jax.random.PRNGKey(0))
     abstract = jax.eval_shape(agent.init, jax.random.PRNGKey(0))
     return agent, state, abstract
@@ -114,7 +114,7 @@ def test_cells_keep_full_precision():
 
 
 def test_actor_file_round_trip(tmp_path):
-    path = tmp_path / rundir.ACTOR
+    path = tmp_path / rundir.ACTORS
     mu = np.arange(5, dtype=np.float32)
     rundir.save_actors(path, 3, 1234, mu=mu, td3=mu + 1, elite=mu + 2)
     loaded = rundir.load_actors(path)

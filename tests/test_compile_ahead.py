@@ -1,4 +1,4 @@
-"""Tests for pgps_jax.compile_ahead: programs compile side by side, `later` ones after them."""
+"""Tests for pgps_jax.cli.compile_ahead: programs compile side by side, `later` ones after them."""
 
 import threading
 import time
@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pgps_jax.compile_ahead import compile_ahead
+from pgps_jax.cli.compile_ahead import compile_ahead
 
 
 class _Program:

@@ -2,7 +2,7 @@
 
 import pytest
 
-from pgps_jax.config import TASK_NAMES, PGPSConfig, for_task
+from pgps_jax.agent.config import TASK_NAMES, PGPSConfig, for_task
 
 
 def test_defaults_are_table_3():

@@ -11,8 +11,8 @@ import time
 
 import pytest
 
-from pgps_jax import run_dir as rundir
-from pgps_jax.checkpoint import DAMAGED
+from pgps_jax.cli import run_dir as rundir
+from pgps_jax.cli.checkpoint import DAMAGED
 
 from conftest import reduced
 from test_resume import assert_same_run

@@ -1,17 +1,21 @@
-"""Tests for pgps_jax.envs.jaxpr_rewrite and the physics step's unrolled line search."""
+"""Tests for pgps_jax.envs.mjx_rewrites: the re-tracing pass, its fallback when a rule no longer
+fits, and the physics step's unrolled line search."""
 
 import functools
 import re
 
 import jax
+from jax.extend import core
 from jax.extend.core import primitives
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from pgps_jax.envs import make_env, physics
-from pgps_jax.envs.jaxpr_rewrite import Rule, rewrite
+from pgps_jax.envs.mjx_rewrites.line_search import unrolled_line_search
+from pgps_jax.envs.mjx_rewrites.rewrite import Rule, rewrite
 
-SIN_TO_COS = Rule(applies=lambda eqn: eqn.primitive is primitives.sin_p,
+SIN_TO_COS = Rule(name="sin_to_cos", applies=lambda eqn: eqn.primitive is primitives.sin_p,
                   compute=lambda eqn, inputs, params: [jnp.cos(*inputs)])
 
 
@@ -42,8 +46,26 @@ def test_rule_replaces_every_call_under_vmap_and_in_sub_jaxprs():
 
 def test_equations_without_a_rule_are_bound_as_traced():
     x = jnp.arange(4.0)
-    never = Rule(applies=lambda eqn: False, compute=lambda eqn, inputs, params: [])
-    assert str(jax.make_jaxpr(rewrite(_nested, [never]))(x)) == str(jax.make_jaxpr(_nested)(x))
+    never = Rule(name="never", applies=lambda eqn: False,
+                 compute=lambda eqn, inputs, params: [])
+    with pytest.warns(RuntimeWarning, match="'never' found nothing to rewrite in _nested"):
+        traced = jax.make_jaxpr(rewrite(_nested, [never]))(x)
+    assert str(traced) == str(jax.make_jaxpr(_nested)(x))
+
+
+def test_a_rule_that_fails_leaves_the_traced_code_and_warns_once_per_trace():
+    """A rule whose computation raises (as when a primitive's parameters are renamed) falls
+    back to the equation as traced, everywhere, with one warning that names the error."""
+    def broken(eqn, inputs, params):
+        raise KeyError("left_side")
+    rule = Rule(name="broken", applies=lambda eqn: eqn.primitive is primitives.sin_p,
+                compute=broken)
+    x = jnp.linspace(-1.0, 1.0, 4)
+    with pytest.warns(RuntimeWarning, match=r"'broken' failed \(KeyError: 'left_side'\)") as seen:
+        fallback = jax.vmap(rewrite(_nested, [rule]))(x[None])[0]
+    assert len([w for w in seen if "broken" in str(w.message)]) == 1
+    np.testing.assert_allclose(fallback, _numpy_nested(np.asarray(x, np.float64), np.sin),
+                               rtol=1e-6)
 
 
 def _step(env, unroll_line_search):
@@ -52,7 +74,7 @@ def _step(env, unroll_line_search):
 
 
 def test_unrolled_line_search_is_the_same_physics_without_device_loops():
-    """halfcheetah: MJX's line search is a 4-step scan; unrolled, the env step compiles with
+    """halfcheetah: MJX's line search is a 4-step scan; unrolled, the env step lowers with
     no device loop but the frames' (a loop on the CPU, unrolled on a GPU) and gives the same
     states."""
     env = make_env("halfcheetah")
@@ -61,10 +83,9 @@ def test_unrolled_line_search_is_the_same_physics_without_device_loops():
                                   maxval=1)
     data = state.pipeline_state.replace(ctrl=controls)
     looped, unrolled = _step(env, False), _step(env, True)
-    assert env.mj_model.opt.ls_iterations <= physics.MAX_UNROLLED_SCAN
 
-    def loops(fn):
-        return len(re.findall(r"\bwhile\(", fn.lower(data).compile().as_text()))
+    def loops(fn):   # in the program handed to XLA
+        return len(re.findall(r"stablehlo\.while", fn.lower(data).as_text()))
     frame_loops = 0 if jax.default_backend() == "gpu" else 1
     assert loops(looped) > frame_loops and loops(unrolled) == frame_loops
     a, b = data, data
@@ -74,10 +95,33 @@ def test_unrolled_line_search_is_the_same_physics_without_device_loops():
         np.testing.assert_allclose(getattr(b, field), getattr(a, field), rtol=1e-5, atol=1e-5)
 
 
-def test_long_scans_stay_loops():
-    def long_scan(x):
-        return jax.lax.scan(lambda c, _: (c * 0.5, None), x, None,
-                            length=physics.MAX_UNROLLED_SCAN + 1)[0]
-    rewritten = jax.make_jaxpr(rewrite(long_scan, [physics.UNROLLED_LINE_SEARCH]))(1.0)
-    (eqn,) = [e for e in rewritten.jaxpr.eqns if e.primitive is primitives.scan_p]
-    assert eqn.params["unroll"] == 1
+def test_only_scans_as_long_as_the_line_search_are_unrolled():
+    def scans(x):
+        for length in (3, 4, 5):
+            x = jax.lax.scan(lambda c, _: (c * 0.5, None), x, None, length=length)[0]
+        return x
+    rewritten = jax.make_jaxpr(rewrite(scans, [unrolled_line_search(4)]))(1.0)
+    unroll = {e.params["length"]: e.params["unroll"] for e in rewritten.jaxpr.eqns
+              if e.primitive is primitives.scan_p}
+    assert unroll == {3: 1, 4: 4, 5: 1}
+
+
+def test_the_switches_on_physics_reach_the_env_step():
+    """`make_env(..., unroll_line_search=True)` unrolls its step's line search on any
+    device; False keeps MJX's loop (the frame loop is the same in both)."""
+    def scan_unrolls(env):
+        state = env.reset(jax.random.PRNGKey(0))
+        jaxpr = jax.make_jaxpr(env.step)(state, jnp.zeros(env.action_size))
+        found = []
+
+        def visit(jaxpr):
+            for eqn in jaxpr.eqns:
+                if eqn.primitive is primitives.scan_p:
+                    found.append(eqn.params["unroll"] == eqn.params["length"])
+                for sub in core.jaxprs_in_params(eqn.params):
+                    visit(sub)
+        visit(jaxpr.jaxpr)
+        return found
+    unrolled = scan_unrolls(make_env("hopper", unroll_line_search=True))
+    kept = scan_unrolls(make_env("hopper", unroll_line_search=False))
+    assert len(unrolled) == len(kept) and sum(unrolled) > sum(kept)

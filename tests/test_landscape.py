@@ -1,4 +1,4 @@
-"""Tests of pgps_jax.landscape on a tiny env whose second observation entry is always zero."""
+"""Tests of pgps_jax.experiments.landscape on a tiny env whose second observation entry is always zero."""
 
 import csv
 
@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pgps_jax import landscape
-from pgps_jax.errors import UsageError
+from pgps_jax.experiments import landscape
+from pgps_jax.cli.errors import UsageError
 
 from train_cli import read_csv, run
 

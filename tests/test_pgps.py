@@ -1,6 +1,7 @@
 """The agent end to end on the toy env: schedule, tracing, vmap, determinism, learning and the
 test evaluations that ride along."""
 
+import dataclasses
 import functools
 
 import jax
@@ -8,24 +9,29 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pgps_jax import pgps
-from pgps_jax.config import PGPSConfig
+from pgps_jax.agent import pgps
+from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
 from pgps_jax.envs.point import PointMass
-from pgps_jax.networks import flatten
-from pgps_jax.pgps import PGPS
+from pgps_jax.agent.networks import flatten
+from pgps_jax.agent.pgps import PGPS
 
 ENV = PointMass()
 SMALL = PGPSConfig(pop_size=4, top_k=2, actor_hidden=(16, 16), critic_hidden=(16, 16),
                    buffer_size=2000, warmup_steps=100, batch_size=32, ss2_size=32, ss1_size=16,
                    sample_ratio=3, q_filter_start=200, t_init=10, t_max=20, t_interval=150,
-                   t_increment=5, eval_episodes=3, eval_steps=20)
+                   t_increment=5)
+TESTS = EvaluationConfig(episodes=3, steps=20)
+
+
+def evaluated_every(every: int, **changes) -> EvaluationConfig:
+    return dataclasses.replace(TESTS, every=every, **changes)
 
 
 @functools.lru_cache(maxsize=None)
-def programs(config, donate=True):
+def programs(config, evaluation=TESTS, donate=True):
     """The agent of `config` on the toy env, its jitted init and generation_step (made once
     per configuration, so that the tests of one configuration share their programs)."""
-    agent = PGPS(config, ENV)
+    agent = PGPS(config, ENV, evaluation)
     return (agent, jax.jit(agent.init),
             jax.jit(agent.generation_step, donate_argnums=0 if donate else ()))
 
@@ -143,8 +149,7 @@ def test_vmap_over_seeds_equals_separate_runs():
 def test_the_two_phases_compute_one_generation_step():
     """The trainer's two programs (play, then learn) give what generation_step gives, over
     generations in which an evaluation begins and ends."""
-    config = SMALL.replace(eval_every=40)       # due every generation
-    agent, init, whole = programs(config)
+    agent, init, whole = programs(SMALL, evaluated_every(40))       # due every generation
     whole_state = init(jax.random.PRNGKey(3))
     phased_state = jax.tree.map(jnp.copy, whole_state)
     play, learn = jax.jit(agent.play), jax.jit(agent.learn)
@@ -188,7 +193,7 @@ def test_base_model_never_injects_or_guides():
                          increasing_steps=False)
     _, history = run(base, 0, 3)
     for metrics in history:
-        assert not bool(metrics["td3/in_population"]) and not bool(metrics["td3/fell_behind"])
+        assert not bool(metrics["td3/in_population"]) and not bool(metrics["td3/guided_loss"])
         assert int(metrics["gen/episode_limit"]) == base.t_max
         assert not bool(metrics["gen/q_filter_active"])
 
@@ -204,8 +209,8 @@ def test_ea_guidance_without_injection_probes_the_td3_actor():
 def test_training_raises_the_return_of_mu():
     config = SMALL.replace(pop_size=6, top_k=3, t_init=50, t_max=50, increasing_steps=False,
                            buffer_size=20_000, warmup_steps=300, q_filter_start=1000,
-                           eval_steps=50, actor_hidden=(32, 32), critic_hidden=(32, 32))
-    agent, init, step = programs(config)
+                           actor_hidden=(32, 32), critic_hidden=(32, 32))
+    agent, init, step = programs(config, dataclasses.replace(TESTS, steps=50))
     state = init(jax.random.PRNGKey(0))
     evaluate = jax.jit(agent.evaluate)
     before = float(evaluate(state)["eval/mu_mean"])
@@ -219,13 +224,13 @@ def test_training_raises_the_return_of_mu():
     assert after["eval/mu_returns"].shape == (3,)
 
 
-def _check_evaluations(config, seed, generations):
+def _check_evaluations(evaluation, seed, generations):
     """Runs `generations` generations. Checks that every evaluation is reported once, in
     order, with exactly what `evaluate` gives for the state it began in, that a generation
     reporting none carries no NaN, and that test episodes are neither stored nor counted.
     Returns [(step, generation reported)] and the steps at which an evaluation fell due while
     another was under way."""
-    agent, init, step = programs(config, donate=False)
+    agent, init, step = programs(SMALL, evaluation, donate=False)
     evaluate = jax.jit(agent.evaluate)
     state = init(jax.random.PRNGKey(seed), jax.random.PRNGKey(seed + 100))
     expected, reported, waited = {}, [], []
@@ -253,8 +258,8 @@ def _check_evaluations(config, seed, generations):
 def test_evaluation_rides_along_and_equals_standalone_evaluate():
     """Test episodes begun when due run alongside later rollouts; the generation in which they
     end reports exactly what `evaluate` gives for the state they began from."""
-    config = SMALL.replace(eval_every=100)      # generations of 40-80 steps, tests of 20 steps
-    reported, _ = _check_evaluations(config, 5, 8)
+    # generations of 40-80 steps, tests of 20 steps
+    reported, _ = _check_evaluations(evaluated_every(100), 5, 8)
     # begun at the first generation, then once each time the total crosses a multiple of 100
     assert reported[0][0] == 100 and len(reported) >= 3
     assert [at // 100 for at, _ in reported] == sorted({at // 100 for at, _ in reported})
@@ -266,8 +271,7 @@ def test_an_evaluation_due_during_another_begins_when_that_one_has_ended():
     """Due every generation, tests twice as long as a rollout: the evaluation that falls due
     while one is under way begins in the generation after it ends, from that generation's
     state, and none is reported twice."""
-    config = SMALL.replace(eval_every=40, eval_steps=20)
-    reported, waited = _check_evaluations(config, 2, 7)
+    reported, waited = _check_evaluations(evaluated_every(40, steps=20), 2, 7)
     assert waited and len(reported) >= 2
     assert all(later > earlier for (earlier, _), (later, _) in zip(reported, reported[1:]))
 
@@ -275,12 +279,12 @@ def test_an_evaluation_due_during_another_begins_when_that_one_has_ended():
 def test_evaluate_takes_a_state_or_actors_and_any_kind_of_key():
     """`evaluate(state)` is `evaluate(actors of the state, its evaluation key)`; raw and
     typed (`jax.random.key`) keys both work, in init, generation_step and evaluate."""
-    agent = PGPS(SMALL, ENV)
+    agent = PGPS(SMALL, ENV, TESTS)
     state = jax.jit(agent.init)(jax.random.PRNGKey(3), jax.random.PRNGKey(103))
     by_state = jax.jit(agent.evaluate)(state)
     by_actors = jax.jit(agent.evaluate)(agent.evaluated_actors(state), jax.random.PRNGKey(103))
     jax.tree.map(np.testing.assert_array_equal, by_state, by_actors)
-    assert by_state["eval/mu_returns"].shape == (SMALL.eval_episodes,)
+    assert by_state["eval/mu_returns"].shape == (TESTS.episodes,)
     typed = jax.jit(agent.init)(jax.random.key(3), jax.random.key(103))
     typed, metrics = jax.jit(agent.generation_step)(typed)
     assert int(metrics["gen/generation"]) == 1
@@ -302,3 +306,33 @@ def test_generation_step_has_no_host_round_trips():
         jax.debug.print("{}", state.total_steps)
         return agent.generation_step(state)
     assert "callback" in jax.jit(leaky).lower(state).as_text().lower()
+
+
+def test_the_metrics_are_those_of_the_schema():
+    """generation_step reports exactly the metrics that `pgps_jax.agent.metrics` lists."""
+    from pgps_jax.agent import metrics as schema
+    agent, init, step = programs(SMALL)
+    _, metrics = jax.eval_shape(step, jax.eval_shape(init, jax.random.PRNGKey(0)))
+    listed = [m.key for m in (*schema.generation_metrics(SMALL.pop_size),
+                              *schema.EVALUATION_REPORT, *schema.evaluation_metrics())]
+    listed += [schema.returns_key(a) for a in ("mu", "td3", "elite")]
+    assert len(listed) == len(set(listed)) and set(metrics) == set(listed)
+
+
+def test_a_state_of_another_env_is_refused_with_the_sizes_that_differ():
+    class Wider(PointMass):
+        observation_size = property(lambda self: 6)
+
+        def reset(self, rng):
+            state = super().reset(rng)
+            return state.replace(obs=jnp.zeros(6))
+
+    agent, init, _ = programs(SMALL)
+    state = jax.eval_shape(init, jax.random.PRNGKey(0))
+    wider = PGPS(SMALL, Wider(), TESTS)
+    with pytest.raises(ValueError, match=r"parameter count \d+ \(this agent: \d+\), "
+                                         r"observation_size 4 \(this agent: 6\)"):
+        jax.eval_shape(wider.generation_step, state)
+    with pytest.raises(ValueError, match="parameters but this agent's actor has"):
+        jax.eval_shape(wider.evaluate, jax.eval_shape(agent.evaluated_actors, state),
+                       jax.random.PRNGKey(0))

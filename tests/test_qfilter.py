@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pgps_jax import qfilter
+from pgps_jax.agent import qfilter
 
 
 def linear_actor(flat, obs):

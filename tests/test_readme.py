@@ -4,7 +4,7 @@ with a tiny configuration in place of hopper's (the API is what it checks)."""
 import pathlib
 import re
 
-import pgps_jax.config
+import pgps_jax.agent.config
 import pgps_jax.envs
 from pgps_jax.envs.point import PointMass
 
@@ -17,18 +17,20 @@ def _snippet() -> str:
 
 
 def test_the_readme_snippet_runs(monkeypatch, capsys):
-    tiny = pgps_jax.config.PGPSConfig(
+    tiny = pgps_jax.agent.config.PGPSConfig(
         pop_size=2, top_k=1, actor_hidden=(8,), critic_hidden=(8,), buffer_size=400,
         warmup_steps=40, t_init=10, t_max=20, t_interval=100, batch_size=8, ss1_size=4,
-        ss2_size=8, sample_ratio=2, q_filter_start=60, eval_every=40, eval_episodes=2,
-        eval_steps=15)
+        ss2_size=8, sample_ratio=2, q_filter_start=60)
+    tiny_tests = pgps_jax.agent.config.EvaluationConfig(every=40, episodes=2, steps=15)
     asked = []
-    monkeypatch.setattr(pgps_jax.config, "for_task",
+    monkeypatch.setattr(pgps_jax.agent.config, "for_task",
                         lambda task, **overrides: asked.append(task) or tiny.replace(**overrides))
+    monkeypatch.setattr(pgps_jax.agent.config, "EvaluationConfig",
+                        lambda **settings: asked.append(settings) or tiny_tests)
     monkeypatch.setattr(pgps_jax.envs, "make_env", lambda task: asked.append(task) or PointMass())
     namespace = {}
     exec(compile(_snippet(), str(README), "exec"), namespace)
-    assert asked == ["hopper", "hopper"]
+    assert asked == [dict(every=10_000, episodes=10, steps=1000), "hopper", "hopper"]
     printed = capsys.readouterr().out.split("\n")
     assert len(printed) >= 3  # evaluations that ended, then the final one
     assert int(namespace["state"].generation) == 10

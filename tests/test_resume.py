@@ -5,7 +5,7 @@ uninterrupted run's (same seed, same machine). SIGKILL at random moments: test_f
 import shutil
 import signal
 
-from pgps_jax import run_dir as rundir
+from pgps_jax.cli import run_dir as rundir
 
 from conftest import reduced
 from train_cli import (checkpoint_steps, data_rows, deterministic, leftovers, read_csv, run,
@@ -41,7 +41,7 @@ def test_ctrl_c_writes_a_checkpoint_then_resume_by_directory(task_runs, cache, t
     assert len(rows) < len(ref_rows)
     stopped_at = int(rows[-1]["generation"])
     assert max(checkpoint_steps(run_dir)) == stopped_at  # the state at the stop, not older
-    assert rundir.load_actors(run_dir / rundir.ACTOR)["generation"] == stopped_at
+    assert rundir.load_actors(run_dir / rundir.ACTORS)["generation"] == stopped_at
     assert leftovers(run_dir) == []
     # resume=<dir>: the run's own settings are used, none repeated on the command line
     result = run("train", [f"resume={run_dir}", "progress=false"], cache, tmp_path)
@@ -53,7 +53,7 @@ def test_ctrl_c_writes_a_checkpoint_then_resume_by_directory(task_runs, cache, t
 def test_resuming_a_finished_run_changes_nothing(task_runs, cache, tmp_path):
     reference, _ = task_runs("hopper")
     before = {p: p.read_bytes() for p in (reference / rundir.EVAL, reference / rundir.METRICS,
-                                          reference / rundir.ACTOR)}
+                                          reference / rundir.ACTORS)}
     result = run("train", reduced("hopper", f"run_dir={reference}", "resume=true"), cache,
                  tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]

@@ -4,10 +4,11 @@ and episodes that do not drive the loop carrying on across rollouts."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from brax.envs.base import Env, State
 
-from pgps_jax import buffer as replay
-from pgps_jax.rollout import begin_episodes, play, random_warmup, run_episodes
+from pgps_jax.agent import buffer as replay
+from pgps_jax.agent.rollout import begin_episodes, play, random_warmup, run_episodes
 
 
 class Countdown(Env):
@@ -128,3 +129,32 @@ def test_episodes_that_do_not_drive_the_loop_carry_on_in_the_next_rollout():
     np.testing.assert_array_equal(episodes.returns, [3.0, 10.0])
     np.testing.assert_array_equal(transitions.obs[:3, 1, 0], [2, 3, 4])   # from where it was
     np.testing.assert_array_equal(valid.sum(0), [3, 3])
+
+
+def test_a_brax_episode_limit_is_a_truncation_not_a_terminal_step():
+    """Brax's `EpisodeWrapper` ends an episode at its time limit with done = 1 and
+    info["truncation"] = 1: the stored step bootstraps (discount 1), in episodes and in the
+    warm-up; a real termination on the same step stays terminal."""
+    from brax.envs.wrappers.training import EpisodeWrapper
+    for terminate_at, discount in ((1000, 1.0), (3, 0.0)):
+        env = EpisodeWrapper(Countdown(terminate_at=terminate_at), episode_length=3,
+                             action_repeat=1)
+        episodes = run(env, [10])
+        assert int(episodes.lengths[0]) == 3
+        np.testing.assert_array_equal(episodes.transitions.discount[:3, 0], [1, 1, discount])
+        transitions, valid = random_warmup(env, jax.random.PRNGKey(0), 1, 4, 100)
+        assert bool(valid[2, 0]) and float(transitions.discount[2, 0]) == discount
+
+
+class ChangesMetrics(Countdown):
+    """A step that adds a metric that reset does not give."""
+
+    def step(self, state, action):
+        new = super().step(state, action)
+        return new.replace(metrics={**new.metrics, "speed": jnp.zeros(())})
+
+
+def test_a_step_whose_metrics_differ_from_reset_s_is_named():
+    with pytest.raises(ValueError, match=r"metrics keys \['speed', 'unstable'\] but reset "
+                                         r"gives \['unstable'\].*new in step: \['speed'\]"):
+        run(ChangesMetrics(), [5])

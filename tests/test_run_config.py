@@ -5,13 +5,13 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from pgps_jax.config import for_task
-from pgps_jax.errors import UsageError
-from pgps_jax.run_config import (CONFIG_DIR, IDENTITY_KEYS, PGPS_FIELDS,
+from pgps_jax.agent.config import EvaluationConfig, for_task
+from pgps_jax.cli.errors import UsageError
+from pgps_jax.cli.run_config import (CONFIG_DIR, IDENTITY_KEYS, PGPS_FIELDS,
                                  check_overrides, differences, env_choices, explicitly_set,
                                  from_dict, override_keys, pgps_config,
                                  register_structured_configs)
-from pgps_jax.trainer import first_non_finite
+from pgps_jax.cli.trainer import first_non_finite
 
 MUJOCO_TASKS = ("halfcheetah", "hopper", "walker2d", "ant", "swimmer")
 register_structured_configs()
@@ -140,17 +140,18 @@ def test_first_non_finite_names_the_loss_first():
     assert first_non_finite({"eval/done": True, "eval/mu_mean": float("nan")}) == "eval/mu_mean"
 
 
-def test_eval_every_is_set_in_one_place():
-    run, config = from_dict(composed("env=point", "eval_every=123"))
-    assert run.eval_every == config.eval_every == 123
-    with pytest.raises(UsageError, match="eval_every=N"):
+def test_the_evaluation_settings_are_the_run_s_not_the_algorithm_s():
+    run, _ = from_dict(composed("env=point", "eval_every=123", "eval_episodes=4"))
+    assert run.evaluation == EvaluationConfig(every=123, episodes=4, steps=50)  # point.yaml
+    assert {"eval_every", "eval_episodes", "eval_steps"} <= set(IDENTITY_KEYS)
+    with pytest.raises(UsageError, match="pgps.eval_every"):
         check_overrides(["pgps.eval_every=5"])
 
 
 @pytest.mark.parametrize("total_steps", [100, 200])
 def test_a_budget_within_the_warm_up_is_refused_before_anything_is_written(tmp_path,
                                                                           total_steps):
-    from pgps_jax.train import plan
+    from pgps_jax.cli.plan import plan
     run_dir = tmp_path / "run"
     values = composed("env=point", f"total_steps={total_steps}", "pgps.warmup_steps=200",
                       f"run_dir={run_dir}")

@@ -1,4 +1,4 @@
-"""Tests for pgps_jax.envs.small_linalg: written-out Cholesky / triangular solves and the
+"""Tests for pgps_jax.envs.mjx_rewrites.small_linalg: written-out Cholesky / triangular solves and the
 rewrite of MJX's physics step that uses them."""
 
 import functools
@@ -11,7 +11,8 @@ from mujoco import mjx
 import numpy as np
 import pytest
 
-from pgps_jax.envs import make_env, physics, small_linalg
+from pgps_jax.envs import make_env, physics
+from pgps_jax.envs.mjx_rewrites import small_linalg
 
 RNG = np.random.default_rng(0)
 
@@ -94,7 +95,9 @@ def test_written_out_function_has_no_small_linalg_primitives():
 def test_large_matrices_keep_the_library_calls():
     n = small_linalg.MAX_SIZE + 1
     written = small_linalg.write_out_small_linalg(jnp.linalg.cholesky)
-    assert "cholesky" in _primitives(jax.make_jaxpr(written)(jnp.asarray(_spd(n)[0])))
+    with pytest.warns(RuntimeWarning, match="'small_linalg' found nothing to rewrite"):
+        jaxpr = jax.make_jaxpr(written)(jnp.asarray(_spd(n)[0]))
+    assert "cholesky" in _primitives(jaxpr)
 
 
 def _physics_step(env, write_out_linalg):
@@ -112,15 +115,18 @@ def test_physics_step_written_out_matches_library():
     library, written_out = jax.jit(_physics_step(env, False))(data), jax.jit(written)(data)
     for field in ("qpos", "qvel", "qacc"):
         np.testing.assert_allclose(getattr(written_out, field), getattr(library, field),
-                                   rtol=1e-4, atol=1e-4)
+                                   rtol=1e-4, atol=1e-3)
 
 
 def test_ant_keeps_the_library_calls():
-    """ant's nv = 14 is above MAX_SIZE."""
+    """ant's nv = 14 is above MAX_SIZE: by default nothing is written out on any device;
+    asked for, the rewrite finds nothing to write out and says so."""
     env = make_env("ant")
     data = jax.vmap(lambda _: mjx.make_data(env.mjx_model))(jnp.arange(2))
     assert env.mjx_model.nv > small_linalg.MAX_SIZE
-    assert "cholesky" in _primitives(jax.make_jaxpr(_physics_step(env, True))(data))
+    assert "cholesky" in _primitives(jax.make_jaxpr(_physics_step(env, None))(data))
+    with pytest.warns(RuntimeWarning, match="'small_linalg' found nothing to rewrite"):
+        assert "cholesky" in _primitives(jax.make_jaxpr(_physics_step(env, True))(data))
 
 
 def test_the_default_writes_out_on_a_gpu_and_keeps_the_library_calls_on_a_cpu():

@@ -5,7 +5,7 @@ evaluation."""
 import numpy as np
 import pytest
 
-from pgps_jax import run_dir as rundir
+from pgps_jax.cli import run_dir as rundir
 from pgps_jax.envs import TASKS
 
 from train_cli import checkpoint_steps, leftovers, read_csv, run
@@ -23,7 +23,7 @@ def test_train_checkpoints_and_evaluate_reproduces_the_last_evaluation(task, tas
     assert all(np.isfinite(float(r["critic_loss"])) for r in rows)
     steps = checkpoint_steps(run_dir)
     assert len(steps) == 3 and steps[-1] == generations[-1] and leftovers(run_dir) == []
-    actors = rundir.load_actors(run_dir / rundir.ACTOR)
+    actors = rundir.load_actors(run_dir / rundir.ACTORS)
     assert actors["generation"] == generations[-1]
     assert actors["mu"].shape == actors["td3"].shape == actors["elite"].shape
 

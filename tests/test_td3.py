@@ -6,10 +6,10 @@ import numpy as np
 import optax
 import pytest
 
-from pgps_jax import buffer as replay
-from pgps_jax.config import PGPSConfig
-from pgps_jax.networks import first_q
-from pgps_jax.td3 import TD3, action_distance, adapt_beta, repeat
+from pgps_jax.agent import buffer as replay
+from pgps_jax.agent.config import PGPSConfig
+from pgps_jax.agent.networks import first_q
+from pgps_jax.agent.td3 import TD3, action_distance, adapt_beta, repeat
 
 OBS, ACT, BATCH = 3, 2, 16
 CONFIG = PGPSConfig(actor_hidden=(8, 8), critic_hidden=(8, 8), batch_size=BATCH, ss2_size=8)

@@ -10,11 +10,11 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from pgps_jax import train
-from pgps_jax.errors import EXIT_FAILED
-from pgps_jax import run_dir as rundir
-from pgps_jax.pgps import PGPS
-from pgps_jax.run_config import CONFIG_DIR, from_dict
+from pgps_jax.cli import train
+from pgps_jax.cli.errors import EXIT_FAILED
+from pgps_jax.cli import run_dir as rundir
+from pgps_jax.agent.pgps import PGPS
+from pgps_jax.cli.run_config import CONFIG_DIR, from_dict
 
 from train_cli import (checkpoint_steps, leftovers, read_csv, run, tensorboard_tags, tiny)
 
@@ -41,7 +41,7 @@ def test_progress_bar_and_summary(reference):
 def test_run_directory_holds_every_output(reference):
     run_dir, _ = reference
     for name in (rundir.CONFIG, rundir.METRICS, rundir.EVAL, rundir.EVAL_POLICIES, rundir.CURVE,
-                 rundir.ACTOR, rundir.TENSORBOARD, rundir.CHECKPOINTS):
+                 rundir.ACTORS, rundir.TENSORBOARD, rundir.CHECKPOINTS):
         assert (run_dir / name).exists(), name
     assert leftovers(run_dir) == []
 
@@ -58,13 +58,13 @@ def test_metrics_csv_has_one_row_per_generation(reference):
     header, rows = read_csv(run_dir / rundir.METRICS)
     assert header == rundir.metrics_columns(POP)
     for column in ("env_steps", "T", "return_0", "return_3", "elite_return", "td3_return",
-                   "fell_behind", "beta", "critic_loss", "actor_loss", "steps_per_s"):
+                   "guided_loss", "beta", "critic_loss", "actor_loss", "steps_per_s"):
         assert column in header
     assert [int(r["generation"]) for r in rows] == list(range(1, len(rows) + 1))
     steps = [int(r["env_steps"]) for r in rows]
     assert steps == sorted(steps) and steps[-1] >= TOTAL > steps[-2]
     assert all(20 <= int(r["T"]) <= 50 for r in rows)
-    assert all(r["fell_behind"] in ("0", "1") for r in rows)
+    assert all(r["guided_loss"] in ("0", "1") for r in rows)
     assert all(np.isfinite(float(r["critic_loss"])) and float(r["steps_per_s"]) > 0 for r in rows)
     elite = [float(r["elite_return"]) for r in rows]
     best = [max(float(r[f"return_{i}"]) for i in range(POP)) for r in rows]
@@ -101,7 +101,7 @@ def test_tensorboard_curve_actor_and_checkpoints(reference):
     assert image.ndim == 3 and image.shape[0] > 100 and image.std() > 0
     _, metrics = read_csv(run_dir / rundir.METRICS)
     last = int(metrics[-1]["generation"])
-    actors = rundir.load_actors(run_dir / rundir.ACTOR)
+    actors = rundir.load_actors(run_dir / rundir.ACTORS)
     assert actors["generation"] == last and actors["env_steps"] == int(metrics[-1]["env_steps"])
     n_params = (4 * 32 + 32) + (32 * 32 + 32) + (32 * 2 + 2)
     assert actors["mu"].shape == actors["td3"].shape == actors["elite"].shape == (n_params,)
@@ -208,6 +208,6 @@ def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(
     assert "generation 3" in err and "td3/critic_loss" in err
     assert "last good checkpoint is generation 2" in err
     assert checkpoint_steps(run_dir) == [1, 2] and leftovers(run_dir) == []
-    assert rundir.load_actors(run_dir / rundir.ACTOR)["generation"] == 2
+    assert rundir.load_actors(run_dir / rundir.ACTORS)["generation"] == 2
     _, metrics = read_csv(run_dir / rundir.METRICS)
     assert metrics[-1]["generation"] == "3" and metrics[-1]["critic_loss"] == "nan"

@@ -54,7 +54,7 @@ class _FillingFile:
 
 
 def fill_logs(n: int) -> None:
-    from pgps_jax import run_dir as rundir
+    from pgps_jax.cli import run_dir as rundir
     due = _fail_on(n)
 
     def filling(open_log):
@@ -70,6 +70,6 @@ def fill_logs(n: int) -> None:
 if __name__ == "__main__":
     where, n, args = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
     {"checkpoint": fill_checkpoints, "log": fill_logs}[where](n)
-    from pgps_jax import train
+    from pgps_jax.cli import train
     sys.argv = ["pgps_jax.train", *args]
     train.main()

@@ -84,7 +84,9 @@ class MjxEnv(Env):
         """One env step: clip the action to [-1, 1], n_frames physics steps, reward, done."""
         action = jnp.clip(action, -1.0, 1.0)
         data0 = state.pipeline_state
-        data = physics.step_frames(self.mjx_model, data0.replace(ctrl=action), self.n_frames)
+        data = physics.step_frames(self.mjx_model, data0.replace(ctrl=action), self.n_frames,
+                                   self.physics.write_out_linalg,
+                                   self.physics.unroll_line_search)
         x0, x1 = self._x_position(data0.qpos), self._x_position(data.qpos)
         x_velocity = (x1 - x0) / self.dt
         forward = self.forward_reward_weight * x_velocity

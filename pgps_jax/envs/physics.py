@@ -6,19 +6,19 @@ An env step is `n_frames` calls of `mjx.step`, with the control held fixed (Gym'
 
 import contextlib
 import dataclasses
-import functools
 import sys
+
+from typing import Optional
 
 import brax
 from etils import epath
 import jax
-from jax.extend.core import primitives
 import mujoco
 from mujoco import mjx
 import numpy as np
 
-from pgps_jax.envs.jaxpr_rewrite import Rule, rewrite
-from pgps_jax.envs.small_linalg import SMALL_LINALG
+from pgps_jax.envs import mjx_rewrites
+from pgps_jax.envs.mjx_rewrites import small_linalg
 
 _ASSETS = epath.resource_path(brax.__name__) / "envs/assets"
 _SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
@@ -41,6 +41,12 @@ class Physics:
     """Integrate joint damping implicitly in the Euler step (MuJoCo's default: on)."""
     floor_contacts: str = "model"
     """One of `FLOOR_CONTACTS`."""
+    write_out_linalg: Optional[bool] = None
+    """Small Cholesky factorisations and solves as fused array code (`mjx_rewrites`); None:
+    on a GPU for models of up to `small_linalg.MAX_SIZE` degrees of freedom."""
+    unroll_line_search: Optional[bool] = None
+    """The Newton solver's line search without a device loop (`mjx_rewrites`); None: on a
+    GPU."""
 
     def __post_init__(self):
         if self.solver not in _SOLVERS:
@@ -126,36 +132,14 @@ def init_qpos(model: mujoco.MjModel) -> np.ndarray:
     return np.array(model.qpos0)
 
 
-MAX_UNROLLED_SCAN = 8
-"""Longest `lax.scan` in the physics step that `unroll_line_search` writes out step by step."""
-
-
-def _is_short_scan(eqn) -> bool:
-    length = eqn.params.get("length") if eqn.primitive is primitives.scan_p else None
-    return length is not None and length <= MAX_UNROLLED_SCAN and eqn.params["unroll"] != length
-
-
-UNROLLED_LINE_SEARCH = Rule(
-    applies=_is_short_scan,
-    compute=lambda eqn, inputs, params: primitives.scan_p.bind(
-        *inputs, **{**params, "unroll": params["length"]}))
-"""MJX's line search (a `lax.scan` of `ls_iterations` steps, each step skipped by a `lax.cond`
-once converged; under `vmap` every step runs) written out without a device loop."""
-
-
 def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
-                write_out_linalg: bool | None = None,
-                unroll_line_search: bool | None = None) -> mjx.Data:
+                write_out_linalg: Optional[bool] = None,
+                unroll_line_search: Optional[bool] = None) -> mjx.Data:
     """Advances `data` by `n_frames` physics steps with its control held fixed.
 
-    `write_out_linalg` (default: on a GPU) replaces MJX's batched cuSOLVER / cuBLAS calls for
-    the mass-matrix and Newton-Hessian factorisations of up to `small_linalg.MAX_SIZE` rows by
-    fused array code: halfcheetah's physics per env step at batch 40 on an H200 takes 1.18 ms
-    instead of 1.33 (`benchmarks/linalg_lowering.py`). On a CPU the library calls are faster.
-    `unroll_line_search` (default: on a GPU) writes out the Newton solver's line search
-    (`UNROLLED_LINE_SEARCH`): the same arithmetic, without a device loop and the copies of its
-    carry on every trip; with the written-out factorisations, 1.05 ms instead of 1.22 on the
-    same benchmark.
+    `write_out_linalg` and `unroll_line_search` switch the rewrites of `mjx_rewrites` on or
+    off; None gives `Physics`'s defaults (on a GPU: halfcheetah's physics per env step at
+    batch 40 on an H200 takes 1.05 ms with both instead of 1.33).
 
     The frames are unrolled: on the GPU every trip of a device loop pauses while the host reads
     its condition, which at these batch sizes costs more than the physics between the pauses
@@ -164,10 +148,9 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
     The price is compiling `n_frames` copies of `mjx.step`.
     """
     on_gpu = jax.default_backend() == "gpu"
-    rules = [rule for rule, wanted in ((SMALL_LINALG, write_out_linalg),
-                                       (UNROLLED_LINE_SEARCH, unroll_line_search))
-             if (on_gpu if wanted is None else wanted)]
-    step = functools.partial(mjx.step, model)
-    if rules:
-        step = rewrite(step, rules)
+    if write_out_linalg is None:
+        write_out_linalg = on_gpu and model.nv <= small_linalg.MAX_SIZE
+    if unroll_line_search is None:
+        unroll_line_search = on_gpu
+    step = mjx_rewrites.physics_step(model, write_out_linalg, unroll_line_search)
     return jax.lax.fori_loop(0, n_frames, lambda _, d: step(d), data, unroll=on_gpu)

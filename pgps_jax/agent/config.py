@@ -1,0 +1,230 @@
+"""PGPSConfig: every hyper-parameter of the paper (Tables 2-4) plus per-task presets; and
+EvaluationConfig, the settings of the test evaluation (Section 5.1).
+
+The configuration is static: it fixes array shapes and loop structure, so it is bound when the
+algorithm's functions are built and never lives inside the TrainState.
+"""
+
+import dataclasses
+from typing import Tuple
+
+TASK_NAMES = ("swimmer", "halfcheetah", "hopper", "walker2d", "ant")
+FELL_BEHIND_RULES = ("mean_minus_std", "mean")
+EVALUATED_ACTORS = ("mu", "td3", "elite")
+"""The actors each evaluation tests, in batch order: the CEM mean μ, the TD3 actor, the elite."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PGPSConfig:
+    """Hyper-parameters of PGPS. Defaults are Table 3; `for_task` applies Table 4."""
+
+    # --- CEM (Section 3, Table 3/4) ---
+    pop_size: int = 10
+    """N: actors evaluated per generation."""
+    top_k: int = 5
+    """K: actors whose parameters update the search distribution."""
+    sigma_init: float = 7.5e-3
+    """Σ_init: initial variance and initial additive damping of the diagonal CEM."""
+    sigma_limit: float = 1e-5
+    """Σ_limit: value the additive damping decays toward."""
+    sigma_decay: float = 0.03
+    """τ_Σ: damping ← (1 − τ_Σ)·damping + τ_Σ·Σ_limit each generation."""
+    cem_divide_by_k: bool = True
+    """Divide the weighted variance term by K, as the authors' (CEM-RL derived) code does."""
+
+    # --- networks (Table 2) ---
+    actor_hidden: Tuple[int, ...] = (400, 300)
+    """Hidden layer widths of the actor (ELU, tanh output)."""
+    critic_hidden: Tuple[int, ...] = (400, 300)
+    """Hidden layer widths of each of the twin critics (ELU, linear output)."""
+
+    # --- TD3 (Table 3, Appendix B) ---
+    actor_lr: float = 2e-3
+    """Adam learning rate of the TD3 actor."""
+    critic_lr: float = 1e-3
+    """Adam learning rate of the twin critics."""
+    tau: float = 0.005
+    """Soft target update rate: target ← τ·online + (1 − τ)·target."""
+    gamma: float = 0.99
+    """Discount factor."""
+    batch_size: int = 256
+    """κ: mini-batch size of every TD3 update."""
+    policy_noise: float = 0.2
+    """Std of the target policy smoothing noise."""
+    noise_clip: float = 0.5
+    """Clip of the target policy smoothing noise."""
+    weight_decay: float = 1e-5
+    """L2 weight decay added to the gradients (authors' code)."""
+    max_grad_norm: float = 10.0
+    """Global gradient-norm clip (authors' code)."""
+    update_blocks: int = 5
+    """Blocks per generation: each is num_update critic then num_update actor updates."""
+    update_unroll: int = 4
+    """Updates per trip of the update loops (speed only; results are the same)."""
+
+    # --- replay buffer and warm-up ---
+    buffer_size: int = 1_000_000
+    """Replay buffer capacity (Table 3)."""
+    warmup_steps: int = 10_000
+    """Uniform-random-action steps that fill the buffer before generation 1 (counted)."""
+
+    # --- mutual guidance (Section 4) ---
+    td3_to_cem_period: int = 1
+    """F_TD3→CEM: the TD3 actor replaces the last actor every F generations."""
+    beta_init: float = 1.0
+    """β_init: initial distance weight of the augmented loss (eq. 2)."""
+    beta_min: float = 1e-3
+    """Lower clamp of β."""
+    beta_max: float = 1024.0
+    """Upper clamp of β."""
+    d_target: float = 0.05
+    """D_target of the β rule (eq. 3)."""
+    ss2_size: int = 512
+    """SS_2: states drawn to measure D before each guided block."""
+    fell_behind_rule: str = "mean_minus_std"
+    """When the TD3 actor fell behind (EA→PG): "mean_minus_std", Return_TD3 < mean − std of
+    the generation's returns (Algorithm 1); "mean", Return_TD3 < mean (what the authors'
+    code computes: its std is taken of a single return)."""
+    target_actor_from_elite: bool = False
+    """Set the TD3 target actor π' to the elite before each generation's updates, as the
+    authors' code does ("the critic is trained through the target actor indirectly guided by
+    the elite actor", Section 4.2); the paper's algorithms do not show it."""
+
+    # --- Q-critic filtering (Algorithm 2) ---
+    q_filter_start: int = 150_000
+    """T_start-Q: total steps after which half the population is chosen by the critic."""
+    sample_ratio: float = 50
+    """SR: M = ⌊SR·N⌋ candidates are scored by the critic."""
+    ss1_size: int = 64
+    """SS_1: states on which each candidate's Q is averaged."""
+
+    # --- increasing evaluation steps (eq. 4) ---
+    t_init: int = 400
+    """T_init: episode length cap at the start."""
+    t_max: int = 1000
+    """T_max: final episode length cap (also the task's time limit)."""
+    t_interval: int = 100_000
+    """T_interval: total steps between increases."""
+    t_increment: int = 100
+    """Steps added to T every T_interval total steps."""
+
+    # --- ablations (Table 1); all False gives the Base model ---
+    pg_guides_ea: bool = True
+    """PG→EA: inject the TD3 actor into the population."""
+    ea_guides_pg: bool = True
+    """EA→PG: train a lagging TD3 actor with the augmented loss L^A."""
+    q_filter: bool = True
+    """Q-critic filtering of sampled actors."""
+    increasing_steps: bool = True
+    """Increasing evaluation steps (eq. 4); when off, T = T_max."""
+
+    def __post_init__(self):
+        _validate(self)
+
+    @property
+    def num_elite_filtered(self) -> int:
+        """Population slots [N/2, N) that Q-critic filtering fills."""
+        return self.pop_size - self.pop_size // 2
+
+    @property
+    def num_candidates(self) -> int:
+        """M = ⌊SR·N⌋ candidates scored by the critic (Algorithm 2)."""
+        return int(self.sample_ratio * self.pop_size)
+
+    @property
+    def td3_probe(self) -> bool:
+        """Whether the TD3 actor runs in an extra slot outside the population.
+
+        Without PG→EA the TD3 actor is never in the population, yet EA→PG needs its return to
+        decide whether it fell behind; it then gets an extra episode that the CEM ignores.
+        """
+        return self.ea_guides_pg and not self.pg_guides_ea
+
+    def replace(self, **changes) -> "PGPSConfig":
+        """A copy with `changes` applied (validated)."""
+        return dataclasses.replace(self, **changes)
+
+
+# Table 4 (and the τ_Σ values of the authors' code), keyed by task.
+_TASK_PRESETS = {
+    "swimmer": dict(pop_size=10, top_k=5, td3_to_cem_period=3, sigma_decay=0.01),
+    "halfcheetah": dict(pop_size=10, top_k=5, td3_to_cem_period=1, sigma_decay=0.03),
+    "hopper": dict(pop_size=6, top_k=3, td3_to_cem_period=1, sigma_decay=0.03),
+    "walker2d": dict(pop_size=6, top_k=3, td3_to_cem_period=1, sigma_decay=0.03),
+    "ant": dict(pop_size=6, top_k=3, td3_to_cem_period=1, sigma_decay=0.03),
+}
+
+
+def for_task(task: str, **overrides) -> PGPSConfig:
+    """The paper's configuration for `task` (Tables 3 and 4), with `overrides` applied."""
+    if task not in _TASK_PRESETS:
+        raise ValueError(f"unknown task {task!r}; valid tasks: {', '.join(TASK_NAMES)}")
+    return PGPSConfig(**{**_TASK_PRESETS[task], **overrides})
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluationConfig:
+    """When and how long the test episodes run (Section 5.1)."""
+
+    every: int = 10_000
+    """Env steps between evaluations."""
+    episodes: int = 10
+    """Test episodes per actor."""
+    steps: int = 1000
+    """Step limit of a test episode."""
+
+    def __post_init__(self):
+        for name in ("every", "episodes", "steps"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value <= 0:
+                raise ValueError(f"EvaluationConfig.{name}={value!r} is invalid: must be a "
+                                 "positive integer")
+
+
+def _require(ok: bool, field: str, value, valid: str) -> None:
+    if not ok:
+        raise ValueError(f"PGPSConfig.{field}={value!r} is invalid: must be {valid}")
+
+
+def _validate(c: PGPSConfig) -> None:
+    """Raise ValueError naming the field, its value and the valid range."""
+    _require(c.pop_size >= 2, "pop_size", c.pop_size, "an integer >= 2")
+    _require(1 <= c.top_k <= c.pop_size, "top_k", c.top_k, f"in [1, pop_size={c.pop_size}]")
+    positive_ints = ("batch_size", "buffer_size", "update_blocks", "update_unroll",
+                     "td3_to_cem_period",
+                     "ss1_size", "ss2_size", "t_init", "t_max", "t_interval")
+    for name in positive_ints:
+        value = getattr(c, name)
+        _require(isinstance(value, int) and value > 0, name, value, "a positive integer")
+    for name in ("warmup_steps", "q_filter_start", "t_increment"):
+        value = getattr(c, name)
+        _require(isinstance(value, int) and value >= 0, name, value, "a non-negative integer")
+    positive_floats = ("sigma_init", "sigma_limit", "actor_lr", "critic_lr", "beta_init",
+                       "beta_min", "beta_max", "d_target", "max_grad_norm", "sample_ratio")
+    for name in positive_floats:
+        value = getattr(c, name)
+        _require(value > 0, name, value, "> 0")
+    for name in ("tau", "sigma_decay"):
+        value = getattr(c, name)
+        _require(0 < value <= 1, name, value, "in (0, 1]")
+    _require(0 <= c.gamma < 1, "gamma", c.gamma, "in [0, 1)")
+    for name in ("policy_noise", "noise_clip", "weight_decay"):
+        _require(getattr(c, name) >= 0, name, getattr(c, name), ">= 0")
+    _require(c.beta_min <= c.beta_init <= c.beta_max, "beta_init", c.beta_init,
+             f"in [beta_min={c.beta_min}, beta_max={c.beta_max}]")
+    _require(c.fell_behind_rule in FELL_BEHIND_RULES, "fell_behind_rule", c.fell_behind_rule,
+             f"one of {', '.join(FELL_BEHIND_RULES)}")
+    _require(c.t_init <= c.t_max, "t_init", c.t_init, f"<= t_max={c.t_max}")
+    _require(c.num_candidates >= c.num_elite_filtered, "sample_ratio", c.sample_ratio,
+             f"large enough that SR·N = {c.num_candidates} candidates >= the "
+             f"{c.num_elite_filtered} population slots Q-filtering fills")
+    _require(c.warmup_steps <= c.buffer_size, "warmup_steps", c.warmup_steps,
+             f"<= buffer_size={c.buffer_size}")
+    episodes = c.pop_size + int(c.td3_probe)
+    _require(episodes * c.t_max <= c.buffer_size, "buffer_size", c.buffer_size,
+             f">= {episodes} episodes × t_max = {episodes * c.t_max} (one generation's "
+             "transitions)")
+    for name in ("actor_hidden", "critic_hidden"):
+        widths = getattr(c, name)
+        _require(len(widths) > 0 and all(int(w) > 0 for w in widths), name, widths,
+                 "a non-empty tuple of positive layer widths")

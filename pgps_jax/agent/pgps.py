@@ -1,0 +1,353 @@
+"""PGPS (Algorithm 1) as one agent object: `PGPS(config, env)` with pure `init`,
+`generation_step` and `evaluate`, and the `TrainState` pytree that they pass along.
+
+Everything that changes lives in the TrainState; the configuration, the env and the networks
+are held by the agent, so `agent.generation_step(state)` is one pure function that the caller
+jits (state donated), vmaps over a batch of states (seeds) or scans over generations.
+
+One generation (Algorithm 1, lines 6-37):
+ 1. population: slot 0 = elite, the rest ~ N(μ, Σ); after T_start-Q total steps the slots
+    [N/2, N) are the best of SR·N samples by the critic (Algorithm 2); every F generations the
+    TD3 actor takes slot N−1 (PG→EA).
+ 2. every actor plays one episode of at most T steps (eq. 4); real transitions enter the buffer.
+ 3. CEM update with the returns (maximised); elite = best actor of this generation.
+ 4. TD3 trains for as many updates as the generation's env steps, in 5 blocks; if the TD3 actor
+    fell behind (return < mean − std of the population), with the augmented loss toward the
+    elite and an adaptive β (EA→PG, eq. 2-3).
+
+The test evaluation (Section 5.1, `pgps_jax.agent.evaluation`) rides along in the population's
+rollouts: when it falls due, the generation snapshots μ, the TD3 actor and the elite and their
+test episodes advance in extra slots of every rollout until they have all ended, when the
+generation reports them (`eval/done`).
+"""
+
+import dataclasses
+import functools
+from typing import Callable
+
+import chex
+import jax
+import jax.numpy as jnp
+
+from pgps_jax.agent import buffer as replay
+from pgps_jax.agent import cem, evaluation, qfilter
+from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, PGPSConfig
+from pgps_jax.envs import Env
+from pgps_jax.agent.evaluation import EvaluationState
+from pgps_jax.agent.metrics import population_return_key
+from pgps_jax.agent.networks import actor_flattener, first_q, flatten
+from pgps_jax.agent.rollout import EpisodeState, begin_episodes, play, random_warmup
+from pgps_jax.agent.td3 import TD3, TD3State
+
+
+@chex.dataclass(frozen=True)
+class TrainState:
+    cem: cem.CEMState            # μ, Σ, damping, elite (flat actor vectors [P])
+    td3: TD3State                # actor, twin critic, targets, optimiser states
+    buffer: replay.BufferState   # device replay buffer
+    beta: jax.Array              # [] distance weight β of L^A (eq. 2-3), persists
+    generation: jax.Array        # [] int32 generations completed
+    total_steps: jax.Array       # [] int32 env steps so far, warm-up included
+    evaluation: EvaluationState  # the test evaluation under way, and when the next is due
+    key: jax.Array               # PRNG key
+
+
+def episode_limit(total_steps: jax.Array, config: PGPSConfig) -> jax.Array:
+    """Eq. 4 with floor division: T = min(T_init + 100·⌊steps / T_interval⌋, T_max)."""
+    if not config.increasing_steps:
+        return jnp.asarray(config.t_max, jnp.int32)
+    grown = config.t_init + config.t_increment * (total_steps // config.t_interval)
+    return jnp.minimum(grown, config.t_max).astype(jnp.int32)
+
+
+def fell_behind(td3_return: jax.Array, population_returns: jax.Array,
+                rule: str = "mean_minus_std") -> jax.Array:
+    """The TD3 actor lags: Return_TD3 < mean − std of the generation's returns (Algorithm 1),
+    or < mean with rule="mean" (the authors' code)."""
+    threshold = jnp.mean(population_returns)
+    if rule == "mean_minus_std":
+        threshold = threshold - jnp.std(population_returns)
+    return td3_return < threshold
+
+
+@chex.dataclass(frozen=True)
+class Played:
+    """What a generation's episodes leave for its learning phase (`PGPS.play` →
+    `PGPS.learn`)."""
+    population: jax.Array        # [N, P] the actors that played (CEM ranks them)
+    episodes: EpisodeState       # [N'] their episodes, N' = N (+1 with the TD3 probe)
+    transitions: replay.Transition  # [t_max, N'] what they met, row by loop step
+    valid: jax.Array             # [t_max, N'] rows to store in the buffer
+    limit: jax.Array             # [] int32 the episode limit T of this generation
+    td3_turn: jax.Array          # [] bool, the TD3 actor played (every F generations)
+    train_key: jax.Array         # PRNG key of the TD3 updates
+    evaluation: evaluation.Report  # the test evaluation, if one ended in this rollout
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PGPS:
+    """The algorithm bound to a configuration, an env and the test evaluation's settings; its
+    methods are pure. jit, vmap, donation and sharding are the caller's choice:
+
+        agent = PGPS(for_task("hopper"), make_env("hopper"))
+        state = jax.jit(agent.init)(jax.random.key(0))
+        step = jax.jit(agent.generation_step, donate_argnums=0)
+        state, metrics = step(state)
+
+    The env is any Brax `Env` (`brax.envs.base.Env`) that keeps this contract:
+    - unbatched: `reset(key)` and `step(state, action)` act on one episode (PGPS vmaps them);
+    - `obs` is a flat vector of `observation_size`, actions lie in [-1, 1]^`action_size`;
+    - `reset` and `step` give states of the same structure: the same `metrics` and `info`
+      keys, arrays of the same shapes and dtypes (a mismatch raises ValueError naming them);
+    - `done` (any numeric dtype) ends an episode, as terminal unless `info["truncation"]` is
+      set (Brax's `EpisodeWrapper` time limit), when the critic bootstraps through it;
+    - optional `metrics["unstable"]` > 0 ends an episode whose step is kept out of the
+      replay buffer, as is any step with a non-finite observation or reward.
+    No time limit is needed: PGPS caps every episode (eq. 4, `PGPSConfig.t_max`).
+    """
+
+    config: PGPSConfig
+    env: Env
+    evaluation_config: EvaluationConfig = EvaluationConfig()
+    """When and how long the test episodes run (Section 5.1)."""
+    td3: TD3 = dataclasses.field(init=False)
+    num_params: int = dataclasses.field(init=False)
+    """P, the length of a flat actor vector."""
+    _unflatten: Callable = dataclasses.field(init=False, repr=False)
+
+    def __post_init__(self):
+        td3 = TD3(self.config, self.env.observation_size, self.env.action_size)
+        num_params, unflatten = actor_flattener(td3.actor_net, self.env.observation_size)
+        object.__setattr__(self, "td3", td3)
+        object.__setattr__(self, "num_params", num_params)
+        object.__setattr__(self, "_unflatten", unflatten)
+
+    def policy(self, flat: jax.Array, obs: jax.Array) -> jax.Array:
+        """The deterministic action of the flat actor vector `flat` [P] at `obs`."""
+        return self.td3.actor_net.apply(self._unflatten(flat), obs)
+
+    def actor(self, flat: jax.Array):
+        """The actor network's parameters of a flat actor vector [P]."""
+        return self._unflatten(flat)
+
+    # --- init -------------------------------------------------------------------------
+    def init(self, key: jax.Array, eval_key: jax.Array | None = None) -> TrainState:
+        """Fresh TD3, μ = the TD3 actor's parameters, and a buffer filled by the random
+        warm-up.
+
+        eval_key: start states of every evaluation (the paper uses seed + 100); by default
+        derived from `key`. The first generation evaluates the initial μ.
+        """
+        config, env = self.config, self.env
+        td3_key, warmup_key, next_key = jax.random.split(key, 3)
+        td3_state = self.td3.init(td3_key)
+        buffer = replay.init(config.buffer_size, env.observation_size, env.action_size)
+        total_steps = 0
+        if config.warmup_steps > 0:
+            steps_per_env = -(-config.warmup_steps // config.pop_size)
+            transitions, valid = random_warmup(env, warmup_key, config.pop_size,
+                                               steps_per_env, config.t_max)
+            buffer = replay.add(buffer, transitions, valid)
+            total_steps = steps_per_env * config.pop_size
+        eval_key = jax.random.fold_in(key, 100) if eval_key is None else eval_key
+        mean = flatten(td3_state.actor)
+        actors = jnp.stack([mean] * len(EVALUATED_ACTORS))
+        return TrainState(cem=cem.init(mean, config.sigma_init),
+                          td3=td3_state, buffer=buffer,
+                          beta=jnp.asarray(config.beta_init, jnp.float32),
+                          generation=jnp.zeros((), jnp.int32),
+                          total_steps=jnp.asarray(total_steps, jnp.int32),
+                          evaluation=evaluation.idle(self.evaluation_config, env, actors,
+                                                     eval_key),
+                          key=next_key)
+
+    # --- one generation ---------------------------------------------------------------
+    def generation_step(self, state: TrainState) -> tuple[TrainState, dict]:
+        """One generation of Algorithm 1: `play`, then `learn`. Returns the next state and the
+        generation's metrics (see `learn`)."""
+        return self.learn(*self.play(state))
+
+    def play(self, state: TrainState) -> tuple[TrainState, Played]:
+        """Algorithm 1 lines 6-18: the generation's actors and their episodes, with the test
+        episodes of the evaluation under way alongside.
+
+        Returns `state` with its evaluation advanced (and its key), and the episodes for
+        `learn`.
+        """
+        self.check_state(state)
+        config, env = self.config, self.env
+        (sample_key, candidate_key, states_key, reset_key, train_key,
+         next_key) = jax.random.split(state.key, 6)
+        n = config.pop_size
+        td3_turn = ((state.generation + 1) % config.td3_to_cem_period) == 0
+
+        population = self.population(state, sample_key, candidate_key, states_key)
+        td3_flat = flatten(state.td3.actor)
+        if config.pg_guides_ea:
+            population = jnp.where(td3_turn, population.at[n - 1].set(td3_flat), population)
+        limit = episode_limit(state.total_steps, config)
+        actors, limits = population, jnp.full((n,), limit)
+        if config.td3_probe:
+            actors = jnp.concatenate([population, td3_flat[None]])
+            limits = jnp.append(limits, jnp.where(td3_turn, limit, 0))
+        num_rollout = actors.shape[0]
+
+        tests = evaluation.begin_if_due(self.evaluation_config, env, state.evaluation,
+                                        self.evaluated_actors(state), state.total_steps)
+        join = functools.partial(jax.tree.map, lambda a, b: jnp.concatenate([a, b]))
+        episodes = begin_episodes(env, jax.random.split(reset_key, num_rollout), limits)
+        test_slots = jnp.arange(num_rollout + tests.episodes.alive.shape[0]) >= num_rollout
+        batch, transitions, valid = play(
+            env, self.policy,
+            join(actors, evaluation.repeat_actors(tests.actors, self.evaluation_config.episodes)),
+            join(episodes, tests.episodes), max(config.t_max, self.evaluation_config.steps),
+            drive=~test_slots)
+        tests, report = evaluation.advanced(
+            tests, jax.tree.map(lambda x: x[num_rollout:], batch))
+        state = state.replace(key=next_key, evaluation=tests)
+        return state, Played(population=population,
+                             episodes=jax.tree.map(lambda x: x[:num_rollout], batch),
+                             transitions=jax.tree.map(lambda x: x[:config.t_max, :num_rollout],
+                                                      transitions),
+                             valid=valid[:config.t_max, :num_rollout], limit=limit,
+                             td3_turn=td3_turn, train_key=train_key, evaluation=report)
+
+    def learn(self, state: TrainState, played: Played) -> tuple[TrainState, dict]:
+        """Algorithm 1 lines 19-37: the buffer takes the episodes' transitions, CEM ranks the
+        population, TD3 trains (with L^A toward the elite if its actor fell behind). Returns
+        the next state and the generation's metrics (`pgps_jax.agent.metrics`: per
+        generation, and `eval/*` for a test evaluation, holding its results where
+        `eval/done`)."""
+        config = self.config
+        n = config.pop_size
+        episodes, td3_turn = played.episodes, played.td3_turn
+        buffer = replay.add(state.buffer, played.transitions, played.valid)
+        interaction_steps = episodes.lengths.sum()
+
+        returns = episodes.returns[:n]
+        new_cem = cem.tell(state.cem, played.population, returns, top_k=config.top_k,
+                           sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
+                           divide_by_k=config.cem_divide_by_k)
+        td3_in_episodes = config.pg_guides_ea or config.td3_probe
+        td3_return = self._td3_return(episodes.returns)
+        if config.ea_guides_pg:
+            guided = td3_turn & fell_behind(td3_return, returns, config.fell_behind_rule)
+        else:
+            guided = jnp.zeros((), bool)
+
+        num_rollout = episodes.lengths.shape[0]
+        num_update = interaction_steps // config.update_blocks
+        max_update = num_rollout * config.t_max // config.update_blocks
+        elite = self._unflatten(new_cem.elite)
+        td3_state = state.td3
+        if config.target_actor_from_elite:
+            td3_state = td3_state.replace(actor_target=elite)
+        new_td3, beta, losses = self.td3.train(td3_state, buffer, played.train_key,
+                                               num_update, max_update, elite, guided,
+                                               state.beta)
+        generation = state.generation + 1
+        new_state = state.replace(cem=new_cem, td3=new_td3, buffer=buffer, beta=beta,
+                                  generation=generation,
+                                  total_steps=state.total_steps + interaction_steps)
+        report = played.evaluation
+        metrics = {
+            "gen/generation": generation,
+            "gen/total_steps": new_state.total_steps,
+            "gen/episode_limit": played.limit,
+            "gen/interaction_steps": interaction_steps,
+            "gen/q_filter_active": ((state.total_steps >= config.q_filter_start)
+                                    & config.q_filter),
+            "pop/return_mean": jnp.mean(returns),
+            "pop/return_std": jnp.std(returns),
+            "pop/unstable_episodes": episodes.unstable.sum(),
+            "cem/elite_return": jnp.max(returns),
+            "cem/var_mean": jnp.mean(new_cem.var),
+            "cem/damping": new_cem.damping,
+            "td3/in_population": td3_turn & td3_in_episodes,
+            "td3/return": jnp.where(td3_turn, td3_return, jnp.nan),
+            "td3/guided_loss": guided,
+            "td3/beta": beta,
+            **{population_return_key(i): returns[i] for i in range(n)},
+            **losses,
+            "eval/done": report.done,
+            "eval/step": report.step,
+            **evaluation.metrics(report.returns),
+        }
+        return new_state, metrics
+
+    def population(self, state: TrainState, sample_key: jax.Array, candidate_key: jax.Array,
+                    states_key: jax.Array) -> jax.Array:
+        """Algorithm 1 lines 6-10 and Algorithm 2: the N actors to evaluate, [N, P]."""
+        config = self.config
+        n, half = config.pop_size, config.pop_size // 2
+        population = cem.ask(sample_key, state.cem, n).at[0].set(state.cem.elite)
+        if not config.q_filter:
+            return population
+
+        def filtered(population):
+            candidates = cem.ask(candidate_key, state.cem, config.num_candidates)
+            states = replay.sample_obs(state.buffer, states_key, config.ss1_size)
+            q1 = functools.partial(first_q, self.td3.critic_net)
+            scores = qfilter.potentials(self.policy, q1, candidates, state.td3.critic, states)
+            return population.at[half:].set(
+                qfilter.select_best(candidates, scores, config.num_elite_filtered))
+
+        return jax.lax.cond(state.total_steps >= config.q_filter_start, filtered,
+                            lambda population: population, population)
+
+    def _td3_return(self, returns: jax.Array) -> jax.Array:
+        """The TD3 actor's return: slot N−1 (PG→EA), the probe slot N, or NaN where it never
+        plays."""
+        config = self.config
+        if config.pg_guides_ea:
+            return returns[config.pop_size - 1]
+        if config.td3_probe:
+            return returns[config.pop_size]
+        return jnp.asarray(jnp.nan)
+
+    # --- checks -----------------------------------------------------------------------
+    def check_state(self, state: TrainState) -> None:
+        """Raises ValueError, naming what differs, if `state` (or a batch of states) was made
+        by an agent of another env or network size."""
+        found = {"parameter count": state.cem.mean.shape[-1],
+                 "observation_size": state.buffer.data.obs.shape[-1],
+                 "action_size": state.buffer.data.action.shape[-1]}
+        wanted = {"parameter count": self.num_params,
+                  "observation_size": self.env.observation_size,
+                  "action_size": self.env.action_size}
+        differ = [f"{k} {found[k]} (this agent: {wanted[k]})" for k in found
+                  if found[k] != wanted[k]]
+        if differ:
+            raise ValueError("the TrainState was made for another env or network: "
+                             + ", ".join(differ))
+
+    def _sizes(self) -> str:
+        return (f"observation_size {self.env.observation_size}, action_size "
+                f"{self.env.action_size}, hidden layers {list(self.config.actor_hidden)}")
+
+    # --- evaluation -------------------------------------------------------------------
+    def evaluated_actors(self, state: TrainState) -> jax.Array:
+        """[A, P]: μ, the TD3 actor and the elite (`EVALUATED_ACTORS`)."""
+        return jnp.stack([state.cem.mean, flatten(state.td3.actor), state.cem.elite])
+
+    def evaluate(self, actors: "TrainState | jax.Array", key: jax.Array | None = None) -> dict:
+        """Deterministic test episodes (Section 5.1), now: of a state's μ, TD3 actor and
+        elite, or of `actors` [A, P] in `EVALUATED_ACTORS` order.
+
+        Each plays `evaluation_config.episodes` episodes of `.steps` steps, all in one batch,
+        from the
+        start states of `key` — by default a state's evaluation key, giving the episodes of
+        the evaluations that ride along in training.
+        """
+        if isinstance(actors, TrainState):
+            self.check_state(actors)
+            key = actors.evaluation.key if key is None else key
+            actors = self.evaluated_actors(actors)
+        elif key is None:
+            raise ValueError("evaluating an array of actors needs the key of the start states")
+        elif jnp.shape(actors)[-1] != self.num_params:
+            raise ValueError(f"the actors have {jnp.shape(actors)[-1]} parameters but this "
+                             f"agent's actor has {self.num_params} ({self._sizes()})")
+        returns = evaluation.evaluate(self.evaluation_config, self.env, self.policy, actors,
+                                      key)
+        return evaluation.metrics(returns)

@@ -1,0 +1,77 @@
+"""`python -m pgps_jax.evaluate run=<dir>`: re-evaluate the μ actor a run saved.
+
+    python -m pgps_jax.evaluate run=runs/halfcheetah/seed0
+    python -m pgps_jax.evaluate run=runs/halfcheetah/seed0 episodes=50 seed=7 out=eval50.csv
+
+Loads `<dir>/config.yaml` and `<dir>/actors.npz` (the μ, TD3 and elite actors of the run's
+last checkpoint, i.e. the final ones once the run has finished) and plays deterministic test
+episodes exactly as training does. With the defaults (the run's `eval_episodes`, start states
+from PRNGKey(seed + 100)) the μ line reproduces the run's last row of eval.csv.
+
+Arguments (key=value): run (required); episodes (default: the run's eval_episodes);
+seed (the evaluation key is PRNGKey(seed); default: the run's seed + 100);
+out (write μ's result as a CSV in the reference format: ,Step,Mean,Std,Reward1..).
+"""
+
+import dataclasses
+import pathlib
+import sys
+from typing import Mapping, Optional, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, PGPSConfig
+from pgps_jax.agent.pgps import PGPS
+from pgps_jax.cli import run_dir as rundir
+from pgps_jax.cli.errors import EXIT_OK, UsageError, report
+from pgps_jax.cli.tool_args import load_run, parse_args
+
+
+def evaluate_actors(config: PGPSConfig, evaluation: EvaluationConfig, env,
+                    actors: Mapping[str, np.ndarray], key: jax.Array) -> dict[str, dict]:
+    """{name: {"returns": [episodes], "mean", "std"}} of μ, the TD3 actor and the elite
+    (`actors` keyed by `EVALUATED_ACTORS`), as `PGPS.evaluate` plays them: deterministic
+    episodes of `evaluation.steps` steps from the start states drawn from `key`."""
+    stacked = jnp.stack([jnp.asarray(actors[name]) for name in EVALUATED_ACTORS])
+    metrics = jax.device_get(jax.jit(PGPS(config, env, evaluation).evaluate)(stacked, key))
+    return {name: {"returns": metrics[f"eval/{name}_returns"],
+                   "mean": float(metrics[f"eval/{name}_mean"]),
+                   "std": float(metrics[f"eval/{name}_std"])}
+            for name in EVALUATED_ACTORS}
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    return report(lambda: _evaluate(argv))
+
+
+def _evaluate(argv: Sequence[str]) -> int:
+    from pgps_jax.envs import make_env
+    args = parse_args(argv, {"run": str, "episodes": int, "seed": int, "out": str},
+                      required=("run",))
+    settings, config, saved = load_run(args["run"])
+    if args.get("episodes", 1) < 1:
+        raise UsageError("episodes must be >= 1")
+    env = make_env(settings.env)
+    key_seed = args.get("seed", settings.seed + 100)
+    evaluation = settings.evaluation
+    if "episodes" in args:
+        evaluation = dataclasses.replace(evaluation, episodes=args["episodes"])
+    results = evaluate_actors(config, evaluation, env, {p: saved[p] for p in EVALUATED_ACTORS},
+                              jax.random.PRNGKey(key_seed))
+    print(f"{args['run']}: {settings.env}, generation {saved['generation']}, "
+          f"{saved['env_steps']:,} env steps; {evaluation.episodes} episodes of "
+          f"{evaluation.steps} steps, key PRNGKey({key_seed})")
+    for name, r in results.items():
+        print(f"  {name:6s} {r['mean']:12.4f} ± {r['std']:10.4f}   "
+              + " ".join(f"{float(x):.2f}" for x in r["returns"]))
+    if "out" in args:
+        mu = results["mu"]
+        header = rundir.eval_columns(len(mu["returns"]))
+        line = [0, saved["env_steps"], mu["mean"], mu["std"], *map(float, mu["returns"])]
+        text = ",".join(header) + "\n" + ",".join(rundir.cell(c) for c in line) + "\n"
+        rundir.write_atomic(pathlib.Path(args["out"]).absolute(), text.encode())
+        print(f"wrote {args['out']}")
+    return EXIT_OK

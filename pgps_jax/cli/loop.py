@@ -1,0 +1,114 @@
+"""The training loop of the CLI and the benchmarks: a run's programs, its generations and the
+evaluations that end it, for one seed or a batch of seeds (vmapped).
+
+`Programs.compile` jits `PGPS.init`, `play`, `learn` (state donated) and `evaluate` and
+compiles them ahead of time side by side (`compile_ahead`); `generation` runs `play` then
+`learn` and fetches the metrics in one `jax.device_get`; `finish` plays the evaluation under
+way to its end from its start and evaluates the state the run ends with, both with the
+`evaluate` program. A caller loops `generation` until its budget and writes what it needs.
+"""
+
+import dataclasses
+import time
+from concurrent.futures import Future
+from typing import Any, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pgps_jax.agent.pgps import PGPS, TrainState
+from pgps_jax.cli.compile_ahead import compile_ahead
+
+
+@dataclasses.dataclass(frozen=True)
+class Programs:
+    """A run's compiled programs (futures until compiled) and its agent."""
+
+    agent: PGPS
+    seeds: bool
+    """Each program takes a batch of states, keys and actors (vmapped over seeds)."""
+    futures: dict[str, Future]
+    abstract_state: Any
+    """The TrainState's shapes and dtypes (a checkpoint is restored into them)."""
+
+    @classmethod
+    def compile(cls, agent: PGPS, key: jax.Array, eval_key: jax.Array, fresh: bool = True,
+                seeds: bool = False) -> "Programs":
+        """Starts compiling: `init` (unless not `fresh`: a resumed run) with `play` and
+        `learn` side by side, then `evaluate` in the background. `key`, `eval_key`: as
+        `init` takes them (with a leading seed axis if `seeds`)."""
+        batched = jax.vmap if seeds else (lambda fn: fn)
+        init = jax.jit(batched(agent.init))
+        play = jax.jit(batched(agent.play), donate_argnums=0)
+        learn = jax.jit(batched(agent.learn), donate_argnums=0)
+        abstract = jax.eval_shape(init, key, eval_key)  # traced once: `lower` reuses it
+        programs = {"play": (play, (abstract,)), "learn": (learn, jax.eval_shape(play, abstract))}
+        if fresh:
+            programs["init"] = (init, (key, eval_key))
+        actors = jax.eval_shape(batched(agent.evaluated_actors), abstract)
+        futures = compile_ahead(programs, later={
+            "evaluate": (jax.jit(batched(agent.evaluate)), (actors, eval_key))})
+        return cls(agent, seeds, futures, abstract)
+
+    def __getitem__(self, name: str):
+        """The compiled program `name`, waiting for its compilation if needed."""
+        return self.futures[name].result()
+
+
+@dataclasses.dataclass(frozen=True)
+class Generation:
+    """What one generation reports, on the host."""
+
+    metrics: dict
+    """`PGPS.learn`'s metrics (`pgps_jax.agent.metrics`), as numpy values."""
+    seconds: float
+    play_seconds: Optional[float] = None
+    """Time to the end of `play` (only when the phases were timed apart)."""
+
+
+def generation(programs: Programs, state: TrainState,
+               time_phases: bool = False) -> tuple[TrainState, Generation]:
+    """One generation: `play`, then `learn`, with the metrics fetched. `time_phases` waits for
+    `play` to end before `learn` starts (one wait more, to time the phases apart)."""
+    start = time.perf_counter()
+    state, played = programs["play"](state)
+    played_at = None
+    if time_phases:
+        jax.block_until_ready(played)
+        played_at = time.perf_counter() - start
+    state, metrics = programs["learn"](state, played)
+    metrics = jax.device_get(metrics)
+    return state, Generation(metrics, time.perf_counter() - start, played_at)
+
+
+@dataclasses.dataclass(frozen=True)
+class Finished:
+    """The evaluations that end a run (host values; a leading seed axis with `seeds`)."""
+
+    unfinished: Optional[dict]
+    """The evaluation that was under way, played to its end from its start (`PGPS.evaluate`
+    metrics), or None where none was; see `unfinished_active`."""
+    unfinished_active: np.ndarray
+    """[] or [S] bool: an evaluation was under way (of that seed)."""
+    unfinished_step: np.ndarray
+    """[] or [S] env steps at which it began."""
+    final: dict
+    """The evaluation of the state the run ends with."""
+
+
+def finish(programs: Programs, state: TrainState,
+           final_key: Optional[jax.Array] = None) -> tuple[TrainState, Finished]:
+    """Ends a run's evaluations: the one under way, played from its start to its end, and one
+    of the final state (start states of `final_key`, by default the run's evaluation key).
+    Returns the state with no evaluation under way."""
+    agent, evaluate = programs.agent, programs["evaluate"]
+    tests = state.evaluation
+    active, began = jax.device_get((tests.active, tests.step))
+    unfinished = (jax.device_get(evaluate(tests.actors, tests.key)) if np.any(active)
+                  else None)
+    actors = (jax.vmap(agent.evaluated_actors) if programs.seeds
+              else agent.evaluated_actors)(state)
+    final = jax.device_get(evaluate(actors, tests.key if final_key is None else final_key))
+    state = state.replace(evaluation=tests.replace(active=jnp.zeros_like(tests.active)))
+    return state, Finished(unfinished, np.asarray(active), np.asarray(began), final)

@@ -1,0 +1,117 @@
+"""What a training invocation will do, decided before anything is trained or written: a new
+run, or the resumption of one (`plan`)."""
+
+import copy
+import dataclasses
+import sys
+from typing import Any, Mapping, Optional, Sequence
+
+from pgps_jax.agent.config import PGPSConfig
+from pgps_jax.cli import run_dir as rundir
+from pgps_jax.cli.errors import UsageError
+from pgps_jax.cli.run_config import (IDENTITY_KEYS, RunSettings, differences, explicitly_set,
+                                     flatten, from_dict, override_keys, require_training)
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """What a training invocation will do, decided before anything is trained."""
+
+    run: RunSettings
+    config: PGPSConfig
+    resolved: dict
+    """The resolved configuration (saved in the run directory and in every checkpoint)."""
+    directory: rundir.RunDir
+    lock: rundir.RunLock
+    """Held from planning to the end of training: no other process trains in `directory`."""
+    resume_step: Optional[int]
+    """The newest checkpoint (generation) whose metadata reads, or None for a new run; the
+    trainer continues from it, or from an older one if it fails verification."""
+
+
+def _set(values: dict, dotted: str, value: Any) -> None:
+    node = values
+    *parents, last = dotted.split(".")
+    for part in parents:
+        node = node.setdefault(part, {})
+    node[last] = value
+
+
+def _checkpointed_config(directory: rundir.RunDir) -> tuple[int, dict]:
+    """(newest readable checkpoint's generation, the resolved configuration saved with it);
+    checkpoints whose metadata cannot be read are set aside."""
+    from pgps_jax.cli.checkpoint import Checkpoints
+    checkpoints = Checkpoints(directory.checkpoints)
+    try:
+        step, meta = checkpoints.latest_meta()
+        return step, meta["config"]
+    finally:
+        checkpoints.close()
+
+
+def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
+    """Decides between a new run and a resumed one; raises UsageError before any training.
+
+    resume=false: a new run in run_dir, which must not hold one already.
+    resume=true: continue run_dir's latest checkpoint (a new run if it has none); the
+      settings in IDENTITY_KEYS must equal the checkpoint's.
+    resume=<dir>: continue <dir> with its checkpointed settings; settings given on the command
+      line replace them, and must not change any in IDENTITY_KEYS.
+    """
+    values = copy.deepcopy(dict(values))
+    run, config = from_dict(values)
+    if run.resume is False:
+        require_training(run, config)
+        directory = rundir.RunDir(run.run_dir)
+        directory.ensure_writable()
+        lock = directory.lock()
+        if directory.holds_run():
+            lock.release()
+            raise UsageError(
+                f"{directory.path} already holds a run; continue it with resume=true, or "
+                f"choose another directory with run_dir=... (or output_dir=...)")
+        return Plan(run, config, values, directory, lock, None)
+
+    by_path = run.resume is not True
+    directory = rundir.RunDir(run.resume if by_path else run.run_dir)
+    if by_path and not directory.path.is_dir():
+        raise UsageError(f"resume={run.resume}: no such run directory")
+    directory.ensure_writable()
+    lock = directory.lock()
+    try:
+        return _plan_resume(run, config, values, overrides, directory, lock, by_path)
+    except BaseException:
+        lock.release()
+        raise
+
+
+def _plan_resume(run: RunSettings, config: PGPSConfig, values: dict, overrides: Sequence[str],
+                 directory: rundir.RunDir, lock: rundir.RunLock, by_path: bool) -> Plan:
+    """`plan` for resume=true or resume=<dir>, once the directory is locked."""
+    if not directory.has_checkpoint():
+        if by_path:
+            raise UsageError(f"resume={run.resume}: {directory.checkpoints} holds no checkpoint")
+        require_training(run, config)
+        print(f"resume=true: no checkpoint in {directory.path}; starting a new run there",
+              file=sys.stderr)
+        return Plan(run, config, values, directory, lock, None)
+
+    step, saved = _checkpointed_config(directory)
+    effective = values
+    if by_path:
+        explicit = [k for k in override_keys(overrides) if k not in ("resume", "run_dir")]
+        effective = copy.deepcopy(saved)
+        for key, value in flatten(values).items():
+            if explicitly_set(key, explicit):
+                _set(effective, key, value)
+        effective["resume"], effective["run_dir"] = run.resume, str(directory.path)
+    diffs = differences(saved, effective, IDENTITY_KEYS)
+    if diffs:
+        raise UsageError(
+            f"the checkpoint in {directory.checkpoints} was made with a different "
+            f"configuration; refusing to resume it. Differing fields:\n  " + "\n  ".join(diffs)
+            + "\nResume with the checkpoint's settings, or start a new run in another run_dir.")
+    run, config = from_dict(effective)
+    require_training(run, config)
+    run = dataclasses.replace(run, run_dir=str(directory.path))
+    return Plan(run, config, effective, directory, lock, step)

@@ -1,0 +1,38 @@
+"""The `key=value` arguments of the tool commands (`evaluate`, `render`) and the saved run they
+name. Imports neither JAX nor MuJoCo, so a command checks its input before loading either."""
+
+from typing import Callable, Mapping, Sequence
+
+from pgps_jax.cli import run_dir as rundir
+from pgps_jax.agent.config import PGPSConfig
+from pgps_jax.cli.errors import UsageError
+from pgps_jax.cli.run_config import RunSettings, from_dict
+
+
+def parse_args(argv: Sequence[str], types: Mapping[str, Callable],
+               required: Sequence[str] = ()) -> dict:
+    """`key=value` arguments -> {key: types[key](value)}; UsageError naming a bad one."""
+    values = {}
+    for arg in argv:
+        key, sep, text = arg.partition("=")
+        if not sep or key not in types:
+            raise UsageError(f"unknown argument {arg!r}; valid: "
+                             + " ".join(f"{k}=..." for k in types))
+        try:
+            values[key] = types[key](text)
+        except ValueError:
+            raise UsageError(f"{key}={text!r} is invalid: expected {types[key].__name__}") from None
+    for key in required:
+        if key not in values:
+            raise UsageError(f"missing argument {key}=...; valid: "
+                             + " ".join(f"{k}=..." for k in types))
+    return values
+
+
+def load_run(path: str) -> tuple[RunSettings, PGPSConfig, dict]:
+    """(settings, config, saved actors) of the run directory `path`."""
+    directory = rundir.RunDir(path)
+    if not directory.path.is_dir():
+        raise UsageError(f"run={path}: no such run directory")
+    settings, config = from_dict(directory.read_config())
+    return settings, config, rundir.load_actors(directory / rundir.ACTORS)
