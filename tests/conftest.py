@@ -35,10 +35,19 @@ def reduced(task: str, *overrides: str) -> list[str]:
 
 
 @pytest.fixture(scope="session")
-def cache(tmp_path_factory) -> pathlib.Path:
-    """JAX's persistent compilation cache of every CLI subprocess of the session: a program
-    that one test compiled loads from it in the next."""
-    return tmp_path_factory.mktemp("jax_cache")
+def cache(tmp_path_factory, worker_id) -> pathlib.Path:
+    """JAX's persistent compilation cache of every CLI subprocess of the session, shared by
+    the pytest-xdist workers: a program that one test compiled loads from it in the next."""
+    root = tmp_path_factory.getbasetemp()
+    if worker_id != "master":  # each worker's base is a sibling under the session's
+        root = root.parent
+    directory = root / "jax_cache"
+    directory.mkdir(exist_ok=True)
+    return directory
+
+
+HOPPER_RUN = pytest.mark.xdist_group("hopper_run")
+"""The tests that use `task_runs("hopper")` run on one worker, which trains it once."""
 
 
 @pytest.fixture(scope="session")

@@ -14,10 +14,12 @@ import pytest
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.checkpoint import DAMAGED
 
-from conftest import reduced
+from conftest import HOPPER_RUN, reduced
 from test_resume import assert_same_run
 from train_cli import (REPO, checkpoint_steps, cli_env, data_rows, leftovers, run, start,
                        wait_until)
+
+pytestmark = HOPPER_RUN
 
 KILLS = 3
 

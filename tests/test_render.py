@@ -14,7 +14,10 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from conftest import HOPPER_RUN
 from train_cli import run
+
+pytestmark = HOPPER_RUN
 
 STEPS = 12
 

@@ -7,9 +7,11 @@ import signal
 
 from pgps_jax.cli import run_dir as rundir
 
-from conftest import reduced
+from conftest import HOPPER_RUN, reduced
 from train_cli import (checkpoint_steps, data_rows, deterministic, leftovers, read_csv, run,
                        start, wait_until)
+
+pytestmark = HOPPER_RUN
 
 
 def assert_same_run(run_dir, reference):

@@ -8,10 +8,12 @@ import pytest
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.envs import TASKS
 
+from conftest import HOPPER_RUN
 from train_cli import checkpoint_steps, leftovers, read_csv, run
 
 
-@pytest.mark.parametrize("task", TASKS)
+@pytest.mark.parametrize("task", [pytest.param(t, marks=HOPPER_RUN) if t == "hopper" else t
+                                  for t in TASKS])
 def test_train_checkpoints_and_evaluate_reproduces_the_last_evaluation(task, task_runs, cache,
                                                                         tmp_path):
     run_dir, result = task_runs(task)
