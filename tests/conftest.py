@@ -4,11 +4,11 @@ session, and one reduced training run per MuJoCo task, made on first use."""
 import os
 import pathlib
 
-from train_cli import FAST_COMPILE_FLAGS, run
+from train_cli import with_fast_compile_flags, run
 
 # The tests' programs, theirs and their CLI subprocesses', compile once and run briefly: XLA
-# spends less time optimising them.
-os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *FAST_COMPILE_FLAGS])
+# spends less time optimising them (where this JAX's XLA knows the flags).
+os.environ["XLA_FLAGS"] = with_fast_compile_flags(os.environ.get("XLA_FLAGS", ""))
 
 import jax  # noqa: E402  (after XLA_FLAGS)
 import pytest  # noqa: E402

@@ -1,4 +1,5 @@
-"""Tests of pgps_jax.experiments.landscape on a tiny env whose second observation entry is always zero."""
+"""Tests of pgps_jax.experiments.landscape on a tiny env whose second observation entry is
+always zero."""
 
 import csv
 

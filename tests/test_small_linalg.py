@@ -1,5 +1,5 @@
-"""Tests for pgps_jax.envs.mjx_rewrites.small_linalg: written-out Cholesky / triangular solves and the
-rewrite of MJX's physics step that uses them."""
+"""Tests for pgps_jax.envs.mjx_rewrites.small_linalg: written-out Cholesky / triangular solves
+and the rewrite of MJX's physics step that uses them."""
 
 import functools
 import itertools

@@ -33,13 +33,25 @@ FAST_COMPILE_FLAGS = ("--xla_backend_optimization_level=0",
 subprocesses only, never a user's run."""
 
 
+def with_fast_compile_flags(xla_flags: str) -> str:
+    """`xla_flags` with `FAST_COMPILE_FLAGS` added, if this JAX's XLA accepts them (it stops
+    the process at its first computation on an unknown flag): checked once, in a
+    subprocess; unchanged if all are there already or they are refused."""
+    flags = xla_flags.split()
+    if all(f in flags for f in FAST_COMPILE_FLAGS):
+        return xla_flags
+    wanted = " ".join([*flags, *FAST_COMPILE_FLAGS])
+    compute = "import jax; jax.numpy.zeros(1).block_until_ready()"
+    probe = subprocess.run([sys.executable, "-c", compute], capture_output=True, timeout=120,
+                           env={**os.environ, "XLA_FLAGS": wanted})
+    return wanted if probe.returncode == 0 else xla_flags
+
+
 def cli_env(cache_dir: pathlib.Path) -> dict:
-    """The environment of a CLI subprocess: CPU, the quick-compile flags, and a persistent
-    compilation cache shared by the test's subprocesses (the same program compiles to the
-    same executable)."""
+    """The environment of a CLI subprocess: the test process's (with its XLA flags), on the
+    CPU, and a persistent compilation cache shared by the test's subprocesses (the same
+    program compiles to the same executable)."""
     env = dict(os.environ)
-    flags = [f for f in env.get("XLA_FLAGS", "").split() if f not in FAST_COMPILE_FLAGS]
-    env["XLA_FLAGS"] = " ".join([*flags, *FAST_COMPILE_FLAGS])
     env.update(JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(cache_dir),
                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", PYTHONUNBUFFERED="1")
     return env

@@ -8,11 +8,11 @@ Episodes can also outlive one loop: `begin_episodes` starts a batch, `play` adva
 the episodes that `drive` the loop have ended, and the others carry on at the next `play` from
 where they stopped (the test episodes that ride along with the population's rollouts).
 
-Termination and truncation: a terminal (unhealthy) step stores discount 0; an
-episode cut at its step limit stores discount 1 so the critic bootstraps through it, and so
-does a step that the env ends with `info["truncation"]` set (Brax's `EpisodeWrapper` time
-limit). A step whose physics went non-finite (`metrics["unstable"]`, or a non-finite observation or reward)
-ends the episode and is never marked valid, so it never reaches the replay buffer.
+Termination and truncation: a terminal (unhealthy) step stores discount 0; an episode cut at
+its step limit stores discount 1 so the critic bootstraps through it, and so does a step that
+the env ends with `info["truncation"]` set (Brax's `EpisodeWrapper` time limit). A step whose
+physics went non-finite (`metrics["unstable"]`, or a non-finite observation or reward) ends
+the episode and is never marked valid, so it never reaches the replay buffer.
 """
 
 from typing import Callable

@@ -5,10 +5,11 @@
     python -m pgps_jax.train resume=runs/hopper/seed3             # the same, by directory
 
 Hydra composes `configs/config.yaml` with `configs/env/<task>.yaml` and the command line; the
-result is turned once into `RunSettings` and the frozen `PGPSConfig` (`pgps_jax.cli.run_config`).
-`pgps_jax.cli.plan` then decides, before anything is trained or written, between a new run
-and a resumed one; `pgps_jax.cli.trainer` runs the loop. The heavy modules (JAX, orbax) are imported only once
-the command line is known to be good, so a mistake is reported at once.
+result is turned once into `RunSettings` and the frozen `PGPSConfig`
+(`pgps_jax.cli.run_config`). `pgps_jax.cli.plan` then decides, before anything is trained or
+written, between a new run and a resumed one; `pgps_jax.cli.trainer` runs the loop. The heavy
+modules (JAX, orbax) are imported only once the command line is known to be good, so a
+mistake is reported at once.
 
 Exit status: 0 done, 1 the run failed (a non-finite metric), 2 a bad setting or command line
 (nothing was trained or written), 130 stopped by SIGINT/SIGTERM after writing a checkpoint.

@@ -3,17 +3,17 @@
 
 Each generation runs the compiled phases (`PGPS.play`, then `PGPS.learn`, the state
 donated), fetches the metrics with one `jax.device_get`, then writes the logs (the columns of
-`pgps_jax.agent.metrics`) and checkpoints. The test evaluation runs inside the generations, alongside the rollouts
-(`pgps_jax.agent.evaluation`): it falls due whenever the env steps have reached a multiple of
-`eval_every` (and in the first generation, after the warm-up), tests the actors of the state
-that generation starts from, and is written, under that state's step count, by the generation
-in which its episodes have ended. After the last generation, the evaluation still under way is
-played to its end from its start and the final state is evaluated, both by `PGPS.evaluate`
-(`loop.finish`).
-Checkpoints are written every `checkpoint_every` generations, at the end and on SIGINT /
-SIGTERM. The programs compile ahead of time side by side (`compile_ahead`): `init` with the
-two phases, then `evaluate` in the background while the run trains.
-Nothing here runs inside jit. The run directory's contents are listed in `pgps_jax.cli.run_dir`.
+`pgps_jax.agent.metrics`) and checkpoints. The test evaluation runs inside the generations,
+alongside the rollouts (`pgps_jax.agent.evaluation`): it falls due whenever the env steps
+have reached a multiple of `eval_every` (and in the first generation, after the warm-up),
+tests the actors of the state that generation starts from, and is written, under that state's
+step count, by the generation in which its episodes have ended. After the last generation,
+the evaluation still under way is played to its end from its start and the final state is
+evaluated, both by `PGPS.evaluate` (`loop.finish`). Checkpoints are written every
+`checkpoint_every` generations, at the end and on SIGINT / SIGTERM. The programs compile
+ahead of time side by side (`compile_ahead`): `init` with the two phases, then `evaluate` in
+the background while the run trains. Nothing here runs inside jit. The run directory's
+contents are listed in `pgps_jax.cli.run_dir`.
 """
 
 import shutil

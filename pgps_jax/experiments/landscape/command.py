@@ -16,8 +16,11 @@ from pgps_jax.envs import Env
 from pgps_jax.cli.errors import EXIT_OK, UsageError, report
 from pgps_jax.cli.run_config import CONFIG_DIR, coerce, parse_overrides
 from pgps_jax.experiments.landscape.config import SweepConfig, TrainConfig, resolve_params
-from pgps_jax.experiments.landscape.output import ANALYSIS_COLUMNS, format_analysis, param_label, plot_landscape, write_sweep_csv
-from pgps_jax.experiments.landscape.search import TrainResult, load_theta, save_theta, train_linear_policy
+from pgps_jax.experiments.landscape.output import (ANALYSIS_COLUMNS, format_analysis,
+                                                   param_label, plot_landscape,
+                                                   write_sweep_csv)
+from pgps_jax.experiments.landscape.search import (TrainResult, load_theta, save_theta,
+                                                   train_linear_policy)
 from pgps_jax.experiments.landscape.sweep import analyse_curve, make_sweep, sweep_values
 
 
