@@ -7,8 +7,10 @@ paper's seed + 100), with the mean return reported per actor.
 with the population instead: `begin_if_due` starts one when `every` env steps have passed and
 none is under way, its episodes fill extra slots of the population's rollout that do not drive
 its loop (so they add no sequential env steps), and `advanced` takes them back after each
-rollout and reports the evaluation once all of its episodes have ended. An evaluation that
-falls due while another is under way begins when that one has ended.
+rollout and reports the evaluation once all of its episodes have ended. So that no
+evaluation is skipped, one under way whose successor could fall due before the next rollout
+(`must_end_now`) drives the loop of this rollout to its end; an evaluation that falls due
+while another is still under way all the same begins when that one has ended.
 """
 
 from typing import Callable
@@ -88,6 +90,13 @@ def begin_if_due(config: EvaluationConfig, env: Env, evaluation: EvaluationState
         step=total_steps.astype(jnp.int32), active=jnp.asarray(True),
         next_due=((total_steps // config.every + 1) * config.every).astype(jnp.int32))
     return jax.tree.map(lambda a, b: jnp.where(begin, a, b), fresh, evaluation)
+
+
+def must_end_now(evaluation: EvaluationState, steps_after: jax.Array) -> jax.Array:
+    """Whether the evaluation under way must end in this rollout: the env steps may reach
+    `steps_after` by its end, when the next evaluation falls due (it would otherwise wait,
+    and begin from a later state than the one it fell due at)."""
+    return evaluation.active & (steps_after >= evaluation.next_due)
 
 
 def advanced(evaluation: EvaluationState,

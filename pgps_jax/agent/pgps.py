@@ -197,11 +197,12 @@ class PGPS:
         join = functools.partial(jax.tree.map, lambda a, b: jnp.concatenate([a, b]))
         episodes = begin_episodes(env, jax.random.split(reset_key, num_rollout), limits)
         test_slots = jnp.arange(num_rollout + tests.episodes.alive.shape[0]) >= num_rollout
+        hurry = evaluation.must_end_now(tests, state.total_steps + limits.sum())
         batch, transitions, valid = play(
             env, self.policy,
             join(actors, evaluation.repeat_actors(tests.actors, self.evaluation_config.episodes)),
             join(episodes, tests.episodes), max(config.t_max, self.evaluation_config.steps),
-            drive=~test_slots)
+            drive=~test_slots | hurry)
         tests, report = evaluation.advanced(
             tests, jax.tree.map(lambda x: x[num_rollout:], batch))
         state = state.replace(key=next_key, evaluation=tests)
