@@ -49,7 +49,8 @@ def late_state(config, env):
                                 size=jnp.asarray(capacity, jnp.int32))
     late = 600_000 if not SMOKE else 2_000
     return state.replace(buffer=buffer, total_steps=jnp.asarray(late, jnp.int32),
-                         next_eval=jnp.asarray(late, jnp.int32))
+                         evaluation=state.evaluation.replace(
+                             next_due=jnp.asarray(late, jnp.int32)))
 
 
 def summarise(trace_file: str, generations: int) -> dict:

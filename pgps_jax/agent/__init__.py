@@ -2,6 +2,6 @@
 
 `config` (the paper's hyper-parameters), `cem` (the search distribution), `td3` (the
 actor-critic and the guided loss), `qfilter` (Algorithm 2), `buffer` (the device replay
-buffer), `networks`, `rollout` (episodes of a batch of actors) and `evaluation` (the test
-episodes of Section 5.1).
+buffer), `networks`, `rollout` (episodes of a batch of actors), `evaluation` (the test
+episodes of Section 5.1) and `metrics` (what a generation reports).
 """

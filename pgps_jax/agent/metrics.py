@@ -1,8 +1,9 @@
 """What a generation reports: every metric's name, meaning and when it holds a value.
 
-`PGPS.learn` returns a flat dict with exactly the keys of `generation_metrics(N)` and
-`EVALUATION_REPORT`; the run's writers (metrics.csv, eval.csv, TensorBoard, the progress
-line) loop over these tables instead of naming metrics themselves.
+`PGPS.learn` returns a flat dict with exactly the keys of `generation_metrics(N)`,
+`EVALUATION_REPORT`, `evaluation_metrics()` and `returns_key(actor)` for each evaluated
+actor; the run's writers (metrics.csv, eval_policies.csv, TensorBoard) take their columns
+and tags from these tables.
 
 Per generation: every `generation_metrics` entry; one whose `defined_by` names a boolean
 metric holds NaN in the generations where that is false (the TD3 actor's return when it did

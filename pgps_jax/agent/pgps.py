@@ -336,9 +336,8 @@ class PGPS:
         elite, or of `actors` [A, P] in `EVALUATED_ACTORS` order.
 
         Each plays `evaluation_config.episodes` episodes of `.steps` steps, all in one batch,
-        from the
-        start states of `key` — by default a state's evaluation key, giving the episodes of
-        the evaluations that ride along in training.
+        from the start states of `key` — by default a state's evaluation key, giving the
+        episodes of the evaluations that ride along in training.
         """
         if isinstance(actors, TrainState):
             self.check_state(actors)

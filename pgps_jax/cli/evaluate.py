@@ -1,4 +1,4 @@
-"""`python -m pgps_jax.evaluate run=<dir>`: re-evaluate the μ actor a run saved.
+"""`python -m pgps_jax.evaluate run=<dir>`: re-evaluate the actors a run saved (μ, TD3, elite).
 
     python -m pgps_jax.evaluate run=runs/halfcheetah/seed0
     python -m pgps_jax.evaluate run=runs/halfcheetah/seed0 episodes=50 seed=7 out=eval50.csv
@@ -16,25 +16,28 @@ out (write μ's result as a CSV in the reference format: ,Step,Mean,Std,Reward1.
 import dataclasses
 import pathlib
 import sys
-from typing import Mapping, Optional, Sequence
+from typing import TYPE_CHECKING, Mapping, Optional, Sequence
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, PGPSConfig
-from pgps_jax.agent.pgps import PGPS
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import EXIT_OK, UsageError, report
 from pgps_jax.cli.tool_args import load_run, parse_args
 
+if TYPE_CHECKING:
+    import jax
+
 
 def evaluate_actors(config: PGPSConfig, evaluation: EvaluationConfig, env,
-                    actors: Mapping[str, np.ndarray], key: jax.Array) -> dict[str, dict]:
+                    actors: Mapping[str, np.ndarray], key: "jax.Array") -> dict[str, dict]:
     """{name: {"returns": [episodes], "mean", "std"}} of μ, the TD3 actor and the elite
     (`actors` keyed by `EVALUATED_ACTORS`), as `PGPS.evaluate` plays them: deterministic
     episodes of `evaluation.steps` steps from the start states drawn from `key`."""
-    stacked = jnp.stack([jnp.asarray(actors[name]) for name in EVALUATED_ACTORS])
+    import jax
+
+    from pgps_jax.agent.pgps import PGPS
+    stacked = jax.numpy.stack([jax.numpy.asarray(actors[name]) for name in EVALUATED_ACTORS])
     metrics = jax.device_get(jax.jit(PGPS(config, env, evaluation).evaluate)(stacked, key))
     return {name: {"returns": metrics[f"eval/{name}_returns"],
                    "mean": float(metrics[f"eval/{name}_mean"]),
@@ -48,12 +51,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 def _evaluate(argv: Sequence[str]) -> int:
-    from pgps_jax.envs import make_env
     args = parse_args(argv, {"run": str, "episodes": int, "seed": int, "out": str},
                       required=("run",))
     settings, config, saved = load_run(args["run"])
     if args.get("episodes", 1) < 1:
         raise UsageError("episodes must be >= 1")
+    import jax  # only once the arguments are known to be good
+
+    from pgps_jax.envs import make_env
     env = make_env(settings.env)
     key_seed = args.get("seed", settings.seed + 100)
     evaluation = settings.evaluation

@@ -37,7 +37,8 @@ class RunSettings:
     total_steps: int
     """Env-step budget, random warm-up included, evaluation excluded."""
     eval_every: int
-    """Evaluate μ each time the env steps cross a multiple of this (and at the start/end)."""
+    """Evaluate μ, the TD3 actor and the elite each time the env steps cross a multiple of
+    this (and at the start and the end)."""
     eval_episodes: int
     """Deterministic test episodes per evaluated actor."""
     eval_steps: int

@@ -1,9 +1,9 @@
-"""The run directory and its writers: CSV logs, TensorBoard, the learning curve, the μ actor.
+"""The run directory and its writers: CSV logs, TensorBoard, the learning curve, the actors.
 
 A run directory holds
 
     config.yaml          the resolved configuration (Hydra's composed YAML, every field)
-    metrics.csv          one row per generation (METRICS_COLUMNS + return_0..return_{N-1})
+    metrics.csv          one row per generation (`metrics_columns(N)`)
     eval.csv             the reference format: ,Step,Mean,Std,Reward1..RewardE (μ's episodes)
     eval_policies.csv    Step and the mean/std return of μ, the TD3 actor and the elite
     tb/                  TensorBoard event files (x axis: env steps)
@@ -45,10 +45,6 @@ CURVE = "learning_curve.png"
 ACTORS = "actors.npz"
 CHECKPOINTS = "checkpoints"
 LOCK = ".lock"
-LOGS = (METRICS, EVAL, EVAL_POLICIES)
-"""The append-only CSV logs, truncated to their checkpointed sizes on resume."""
-
-# metrics.csv: (column, metric key of PGPS.generation_step); return_i columns follow `T`.
 METRICS_HOST = ("steps_per_s", "wall_time_s")
 """Host-measured columns (they differ between runs; everything else is deterministic)."""
 

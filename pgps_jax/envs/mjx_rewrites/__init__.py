@@ -6,7 +6,9 @@
 - `line_search`: the Newton solver's line search without a device loop
   (`Physics.unroll_line_search`).
 
-Both default to on for a GPU and off for a CPU, where the library calls are faster; on an
+Both default to on for a GPU (the written-out linear algebra for models of up to
+`small_linalg.MAX_SIZE` degrees of freedom) and off for a CPU, where the library calls are
+faster; on an
 H200, halfcheetah's physics at batch 40 takes 1.05 ms per env step with both instead of 1.33
 (BENCHMARKS.md). They re-trace `mjx.step` (`rewrite`) and match its code by primitive, shape
 and parameter names, as MJX and JAX were in `WRITTEN_FOR`; where a later version no longer

@@ -19,8 +19,8 @@ import numpy as np
 from pgps_jax.envs.mjx_rewrites.rewrite import Rule, rewrite
 
 MAX_SIZE = 10
-"""Largest matrix written out. On an H200 (`benchmarks/linalg_lowering.py`) the written-out
-versions take 11–24 % off an env step for nv = 5–9 (swimmer, hopper, halfcheetah, walker2d);
+"""Largest matrix written out. On an H200 (BENCHMARKS.md, "Small factorisations") the
+written-out versions take 11–24 % off an env step for nv = 5–9 (swimmer, hopper, halfcheetah, walker2d);
 at ant's nv = 14 they gain nothing and compile 2.7× longer, so ant keeps the library calls."""
 
 
