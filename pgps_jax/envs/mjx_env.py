@@ -7,7 +7,6 @@ termination when a task's `is_healthy` test fails. There is no time limit and no
 """
 
 import dataclasses
-import functools
 
 from brax.envs.base import Env, State
 import jax
@@ -53,12 +52,6 @@ class MjxEnv(Env):
                 else self.mj_model.qpos0)
         self._init_qpos = jnp.asarray(pose)
         self._data0 = mjx.make_data(self.mjx_model)
-        # Jitted once per env: the programs that step the env (warm-up, rollout, test
-        # episodes) share one trace of MJX's physics instead of tracing it each.
-        self._physics_step = jax.jit(functools.partial(
-            physics.step_frames, self.mjx_model, n_frames=self.n_frames,
-            write_out_linalg=self.physics.write_out_linalg,
-            unroll_line_search=self.physics.unroll_line_search))
 
     @property
     def dt(self) -> float:
@@ -91,7 +84,9 @@ class MjxEnv(Env):
         """One env step: clip the action to [-1, 1], n_frames physics steps, reward, done."""
         action = jnp.clip(action, -1.0, 1.0)
         data0 = state.pipeline_state
-        data = self._physics_step(data0.replace(ctrl=action))
+        data = physics.step_frames(self.mjx_model, data0.replace(ctrl=action), self.n_frames,
+                                   self.physics.write_out_linalg,
+                                   self.physics.unroll_line_search)
         x0, x1 = self._x_position(data0.qpos), self._x_position(data.qpos)
         x_velocity = (x1 - x0) / self.dt
         forward = self.forward_reward_weight * x_velocity
