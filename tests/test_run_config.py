@@ -144,8 +144,9 @@ def test_the_evaluation_settings_are_the_run_s_not_the_algorithm_s():
     run, _ = from_dict(composed("env=point", "eval_every=123", "eval_episodes=4"))
     assert run.evaluation == EvaluationConfig(every=123, episodes=4, steps=50)  # point.yaml
     assert {"eval_every", "eval_episodes", "eval_steps"} <= set(IDENTITY_KEYS)
-    with pytest.raises(UsageError, match="pgps.eval_every"):
-        check_overrides(["pgps.eval_every=5"])
+    with pytest.raises(UsageError, match=r"pgps.eval_steps is not a PGPSConfig field: set "
+                                         r"eval_steps=\.\.\."):
+        check_overrides(["pgps.eval_steps=5"])
 
 
 @pytest.mark.parametrize("total_steps", [100, 200])

@@ -122,6 +122,9 @@ def check_overrides(args: Sequence[str]) -> None:
             continue
         if key.startswith("pgps."):
             field = key[len("pgps."):]
+            if field in _RUN_KEYS:
+                raise UsageError(f"{key} is not a PGPSConfig field: set {field}=... (a setting "
+                                 "of the run, like the test evaluation's)")
             if field not in PGPS_FIELDS:
                 raise UsageError(f"unknown setting {key!r}: PGPSConfig has no field {field!r}; "
                                  f"pgps.<field> must be one of: {', '.join(PGPS_FIELDS)}")
