@@ -77,20 +77,14 @@ def check_step_keeps_the_state(before: State, after: State) -> None:
                 f"the env's step returns {field} keys {sorted(now)} but reset gives "
                 f"{sorted(was)}: reset and step must give the same {field} keys (missing from "
                 f"step: {sorted(was - now)}; new in step: {sorted(now - was)})")
-    shapes = lambda s: jax.tree.map(lambda x: (jnp.shape(x), jnp.result_type(x)), s)
     if jax.tree.structure(before) != jax.tree.structure(after):
         raise ValueError("the env's step returns a state whose structure differs from "
                          "reset's (pipeline_state fields)")
-    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(shapes(before),
-                                                                   is_leaf=_is_shape),
-                            jax.tree.leaves(shapes(after), is_leaf=_is_shape)):
-        if a != b:
+    for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(before), jax.tree.leaves(after)):
+        was, now = (jnp.shape(x), jnp.result_type(x)), (jnp.shape(y), jnp.result_type(y))
+        if was != now:
             raise ValueError(f"the env's step changes {jax.tree_util.keystr(path)} from "
-                             f"shape/dtype {a} to {b}; reset and step must agree")
-
-
-def _is_shape(x) -> bool:
-    return isinstance(x, tuple) and len(x) == 2 and isinstance(x[0], tuple)
+                             f"shape/dtype {was} to {now}; reset and step must agree")
 
 
 def _select(pred: jax.Array, on_true, on_false):

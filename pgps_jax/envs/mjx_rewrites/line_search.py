@@ -6,13 +6,18 @@ loop copies its carry and pauses. `unrolled_line_search(n)` writes out every sca
 n steps in the physics step (in MJX 3.17 the line search is the only one).
 """
 
+import functools
+
 from jax.extend.core import primitives
 
 from pgps_jax.envs.mjx_rewrites.rewrite import Rule
 
 
+@functools.cache
 def unrolled_line_search(ls_iterations: int) -> Rule:
-    """The rule that unrolls scans of `ls_iterations` steps (the model's line search)."""
+    """The rule that unrolls scans of `ls_iterations` steps (the model's line search); one
+    object per length, so that `rewrite`'s cache of which sub-jaxprs hold a target serves
+    every trace of the step."""
     def applies(eqn) -> bool:
         return (eqn.primitive is primitives.scan_p and eqn.params["length"] == ls_iterations
                 and eqn.params["unroll"] != ls_iterations)
