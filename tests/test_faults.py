@@ -16,8 +16,8 @@ from pgps_jax.cli.checkpoint import DAMAGED
 
 from conftest import HOPPER_RUN, reduced
 from test_resume import assert_same_run
-from train_cli import (REPO, checkpoint_steps, cli_env, data_rows, leftovers, run, start,
-                       wait_until)
+from train_cli import (REPO, checkpoint_steps, cli_env, data_rows, leftovers, run, run_here,
+                       start, wait_until)
 
 pytestmark = HOPPER_RUN
 
@@ -91,7 +91,7 @@ def test_a_damaged_checkpoint_is_set_aside_and_the_run_resumes_from_the_one_befo
     assert_same_run(run_dir, reference)
 
 
-def test_when_no_checkpoint_verifies_resume_stops_with_a_message(task_runs, cache, tmp_path):
+def test_when_no_checkpoint_verifies_resume_stops_with_a_message(task_runs, tmp_path):
     reference, _ = task_runs("hopper")
     run_dir = tmp_path / "all_damaged"
     shutil.copytree(reference, run_dir)
@@ -99,8 +99,8 @@ def test_when_no_checkpoint_verifies_resume_stops_with_a_message(task_runs, cach
     for step in steps:
         _flip_bytes(_largest_state_file(run_dir / "checkpoints" / str(step)))
     before = (run_dir / rundir.METRICS).read_bytes()
-    result = run("train", reduced("hopper", f"run_dir={run_dir}", "resume=true"), cache,
-                 tmp_path)
+    result = run_here("train", reduced("hopper", f"run_dir={run_dir}", "resume=true"),
+                      tmp_path)
     assert result.returncode == 2, result.stderr[-3000:]
     assert "no checkpoint in" in result.stderr and "can be restored" in result.stderr
     assert "Traceback" not in result.stderr
@@ -136,8 +136,8 @@ def test_a_second_process_in_a_run_directory_is_refused(task_runs, cache, tmp_pa
     try:
         wait_until(lambda: data_rows(run_dir / rundir.METRICS) >= 1, process)
         for extra in (["resume=true"], [f"run_dir={tmp_path / 'other'}", f"resume={run_dir}"]):
-            second = run("train", reduced("hopper", f"run_dir={run_dir}", *extra), cache,
-                         tmp_path)
+            second = run_here("train", reduced("hopper", f"run_dir={run_dir}", *extra),
+                              tmp_path)
             assert second.returncode == 2, second.stderr[-3000:]
             assert f"{run_dir} is in use by process {process.pid}" in second.stderr
             assert "Traceback" not in second.stderr

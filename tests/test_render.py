@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from conftest import HOPPER_RUN
-from train_cli import run
+from train_cli import run, run_here
 
 pytestmark = HOPPER_RUN
 
@@ -100,10 +100,10 @@ def test_render_without_opengl_names_what_to_install(task_runs, cache, tmp_path)
     (["out=episode.avi"], [".mp4 or .gif"]),
     (["colour=red"], ["unknown argument 'colour=red'"]),
 ])
-def test_render_bad_arguments(task_runs, cache, tmp_path, args, words):
+def test_render_bad_arguments(task_runs, tmp_path, args, words):
     run_dir, _ = task_runs("hopper")
     base = [] if args in ([], ["run=/nonexistent/run"]) else [f"run={run_dir}"]
-    result = run("render", base + args, cache, tmp_path)
+    result = run_here("render", base + args, tmp_path)
     assert result.returncode == 2
     for word in words:
         assert word in result.stderr

@@ -16,7 +16,8 @@ from pgps_jax.cli import run_dir as rundir
 from pgps_jax.agent.pgps import PGPS
 from pgps_jax.cli.run_config import CONFIG_DIR, from_dict
 
-from train_cli import (checkpoint_steps, leftovers, read_csv, run, tensorboard_tags, tiny)
+from train_cli import (checkpoint_steps, leftovers, read_csv, run, run_here, tensorboard_tags,
+                       tiny)
 
 TOTAL, EVAL_EVERY, WARMUP, POP = 3000, 400, 200, 4
 
@@ -136,9 +137,9 @@ def test_render_refuses_a_task_without_a_mujoco_model(reference, cache, tmp_path
     (["pgps.top_k=99"], ["top_k=99", "pop_size"]),
     (["pgps.q_filter=maybe"], ["pgps.q_filter", "true or false"]),
 ])
-def test_bad_settings_fail_before_anything_is_written(args, words, cache, tmp_path):
+def test_bad_settings_fail_before_anything_is_written(args, words, tmp_path):
     run_dir = tmp_path / "run"
-    result = run("train", tiny(f"run_dir={run_dir}", *args), cache, tmp_path)
+    result = run_here("train", tiny(f"run_dir={run_dir}", *args), tmp_path)
     assert result.returncode == 2, result.stderr[-2000:]
     for word in words:
         assert word in result.stderr
@@ -146,10 +147,10 @@ def test_bad_settings_fail_before_anything_is_written(args, words, cache, tmp_pa
     assert not run_dir.exists()
 
 
-def test_unwritable_output_directory_fails_before_training(cache, tmp_path):
+def test_unwritable_output_directory_fails_before_training(tmp_path):
     blocker = tmp_path / "not_a_directory"
     blocker.write_text("x")
-    result = run("train", tiny(f"output_dir={blocker}"), cache, tmp_path)
+    result = run_here("train", tiny(f"output_dir={blocker}"), tmp_path)
     assert result.returncode == 2
     assert "cannot write the run directory" in result.stderr and str(blocker) in result.stderr
     assert "Traceback" not in result.stderr
@@ -169,20 +170,20 @@ def _snapshot(run_dir: pathlib.Path) -> dict:
                                                    "eval_every: checkpoint 400, now 100"]),
 ])
 def test_an_existing_run_is_never_overwritten_or_resumed_with_other_settings(
-        reference, cache, tmp_path, args, words):
+        reference, tmp_path, args, words):
     run_dir, _ = reference
     before = _snapshot(run_dir)
-    result = run("train", tiny(f"run_dir={run_dir}", *args), cache, tmp_path)
+    result = run_here("train", tiny(f"run_dir={run_dir}", *args), tmp_path)
     assert result.returncode == 2, result.stderr[-2000:]
     for word in words:
         assert word in result.stderr
     assert _snapshot(run_dir) == before
 
 
-def test_resume_by_directory_refuses_other_explicit_settings(reference, cache, tmp_path):
+def test_resume_by_directory_refuses_other_explicit_settings(reference, tmp_path):
     run_dir, _ = reference
     before = _snapshot(run_dir)
-    result = run("train", [f"resume={run_dir}", "env=hopper"], cache, tmp_path)
+    result = run_here("train", [f"resume={run_dir}", "env=hopper"], tmp_path)
     assert result.returncode == 2
     assert "env.name: checkpoint 'point', now 'hopper'" in result.stderr
     assert _snapshot(run_dir) == before

@@ -1,6 +1,10 @@
 """Helpers of the training CLI tests: run `python -m pgps_jax.<module>`, read its outputs."""
 
+import contextlib
 import csv
+import importlib
+import io
+import logging
 import os
 import pathlib
 import struct
@@ -63,6 +67,29 @@ def run(module: str, args, cache_dir: pathlib.Path, cwd: pathlib.Path,
     return subprocess.run([sys.executable, "-m", f"pgps_jax.{module}", *args], cwd=cwd,
                           env={**cli_env(cache_dir), **environ}, capture_output=True, text=True,
                           timeout=timeout)
+
+
+def run_here(module: str, args, cwd: pathlib.Path) -> subprocess.CompletedProcess:
+    """`python -m pgps_jax.<module> <args>` run in this process: its `main` with `args` as
+    the command line, in `cwd`, with stdout and stderr captured. For commands that stop
+    before any training (bad input), saving a Python start-up per test."""
+    main = importlib.import_module(f"pgps_jax.{module}").main
+    out, err = io.StringIO(), io.StringIO()
+    argv, here = sys.argv, os.getcwd()
+    handlers = logging.root.handlers[:]  # Hydra sets up logging to the streams of the moment
+    sys.argv = [f"pgps_jax.{module}", *args]
+    try:
+        os.chdir(cwd)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main() or 0
+            except SystemExit as e:
+                code = e.code if isinstance(e.code, int) else 1
+    finally:
+        sys.argv = argv
+        os.chdir(here)
+        logging.root.handlers[:] = handlers
+    return subprocess.CompletedProcess([module, *args], code, out.getvalue(), err.getvalue())
 
 
 def start(module: str, args, cache_dir: pathlib.Path, cwd: pathlib.Path,

@@ -11,7 +11,7 @@ way to its end from its start and evaluates the state the run ends with, both wi
 import dataclasses
 import time
 from concurrent.futures import Future
-from typing import Any, Optional
+from typing import Optional
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +19,13 @@ import numpy as np
 
 from pgps_jax.agent.pgps import PGPS, TrainState
 from pgps_jax.cli.compile_ahead import compile_ahead
+
+
+def state_shapes(agent: PGPS, key: jax.Array, eval_key: jax.Array, seeds: bool = False):
+    """The shapes and dtypes of `agent.init(key, eval_key)`'s TrainState (a checkpoint is
+    restored into them), found without tracing the warm-up's physics."""
+    unfilled = dataclasses.replace(agent, config=agent.config.replace(warmup_steps=0))
+    return jax.eval_shape(jax.vmap(unfilled.init) if seeds else unfilled.init, key, eval_key)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -29,27 +36,28 @@ class Programs:
     seeds: bool
     """Each program takes a batch of states, keys and actors (vmapped over seeds)."""
     futures: dict[str, Future]
-    abstract_state: Any
-    """The TrainState's shapes and dtypes (a checkpoint is restored into them)."""
 
     @classmethod
     def compile(cls, agent: PGPS, key: jax.Array, eval_key: jax.Array, fresh: bool = True,
                 seeds: bool = False) -> "Programs":
-        """Starts compiling: `init` (unless not `fresh`: a resumed run) with `play` and
-        `learn` side by side, then `evaluate` in the background. `key`, `eval_key`: as
-        `init` takes them (with a leading seed axis if `seeds`)."""
+        """Starts compiling: `init` (unless not `fresh`: a resumed run, whose state comes
+        from a checkpoint) with `play` and `learn` side by side, then `evaluate` in the
+        background. `key`, `eval_key`: as `init` takes them (with a leading seed axis if
+        `seeds`)."""
         batched = jax.vmap if seeds else (lambda fn: fn)
         init = jax.jit(batched(agent.init))
         play = jax.jit(batched(agent.play), donate_argnums=0)
         learn = jax.jit(batched(agent.learn), donate_argnums=0)
-        abstract = jax.eval_shape(init, key, eval_key)  # traced once: `lower` reuses it
+        # A fresh run's init is traced once: `lower` reuses the trace.
+        abstract = (jax.eval_shape(init, key, eval_key) if fresh
+                    else state_shapes(agent, key, eval_key, seeds))
         programs = {"play": (play, (abstract,)), "learn": (learn, jax.eval_shape(play, abstract))}
         if fresh:
             programs["init"] = (init, (key, eval_key))
         actors = jax.eval_shape(batched(agent.evaluated_actors), abstract)
         futures = compile_ahead(programs, later={
             "evaluate": (jax.jit(batched(agent.evaluate)), (actors, eval_key))})
-        return cls(agent, seeds, futures, abstract)
+        return cls(agent, seeds, futures)
 
     def __getitem__(self, name: str):
         """The compiled program `name`, waiting for its compilation if needed."""

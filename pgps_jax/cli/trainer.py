@@ -116,9 +116,8 @@ class Trainer:
         """
         seed_key, eval_key = (jax.random.PRNGKey(self.run.seed),
                               jax.random.PRNGKey(self.run.seed + 100))
-        self.programs = loop.Programs.compile(self.agent, seed_key, eval_key,
-                                              fresh=self.p.resume_step is None)
         if self.p.resume_step is None:
+            self.programs = loop.Programs.compile(self.agent, seed_key, eval_key)
             for log in self.logs.values():
                 log.start()
             shutil.rmtree(self.dir / rundir.TENSORBOARD, ignore_errors=True)
@@ -128,7 +127,10 @@ class Trainer:
             self.total = int(state.total_steps)
             self.bar.update(min(self.total, self.run.total_steps))
             return state
-        step, state, meta = self.checkpoints.restore_latest(self.programs.abstract_state)
+        step, state, meta = self.checkpoints.restore_latest(
+            loop.state_shapes(self.agent, seed_key, eval_key))
+        if meta["total_steps"] < self.run.total_steps:  # a finished run needs no programs
+            self.programs = loop.Programs.compile(self.agent, seed_key, eval_key, fresh=False)
         for name, log in self.logs.items():
             log.reopen(meta["logs"][name])
         self.generation, self.total = meta["generation"], meta["total_steps"]
