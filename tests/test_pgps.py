@@ -188,6 +188,52 @@ def test_population_layout_and_counters():
                                   population[int(np.argmax(returns))])
 
 
+@pytest.mark.parametrize("period", [1, 2])
+def test_a_kept_population_plays_until_q_filtering_starts(period):
+    """resample_before_q_filter=False (the authors' code): the population drawn at the start
+    (μ in slot 0) plays every generation, the TD3 actor in slot N−1 from its first turn on,
+    while μ and Σ move; once Q-filtering starts the population is the elite and new samples."""
+    config = SMALL.replace(resample_before_q_filter=False, td3_to_cem_period=period)
+    agent, init, _ = programs(config)
+    play, learn = jax.jit(agent.play), jax.jit(agent.learn)
+    state = init(jax.random.PRNGKey(0))
+    kept = np.asarray(state.kept_population)
+    np.testing.assert_array_equal(kept[0], np.asarray(state.cem.mean))
+    injected = None
+    while int(state.total_steps) < config.q_filter_start:
+        state, played = play(state)
+        population = np.asarray(played.population)
+        n = config.pop_size
+        np.testing.assert_array_equal(population[:n - 1], kept[:n - 1])
+        if int(state.generation + 1) % period == 0:
+            injected = np.asarray(flatten(state.td3.actor))
+        np.testing.assert_array_equal(population[n - 1],
+                                      kept[n - 1] if injected is None else injected)
+        state, _ = learn(state, played)
+        assert not np.array_equal(np.asarray(state.cem.mean), kept[0])  # μ still moves
+    _, played = play(state)
+    population = np.asarray(played.population)
+    np.testing.assert_array_equal(population[0], np.asarray(state.cem.elite))
+    assert not np.any(np.all(population[1:n - 1, None] == kept[None], axis=-1))
+
+
+def test_the_paper_resamples_every_generation():
+    agent, init, _ = programs(SMALL)
+    state = init(jax.random.PRNGKey(0))
+    assert state.kept_population is None
+    play, learn = jax.jit(agent.play), jax.jit(agent.learn)
+    state, first = play(state)
+    state, _ = learn(state, first)
+    _, second = play(state)
+    assert not np.any(np.all(np.asarray(second.population)[1:-1, None]
+                             == np.asarray(first.population)[None], axis=-1))
+
+
+def test_a_kept_population_needs_the_q_filter():
+    with pytest.raises(ValueError, match="resample_before_q_filter"):
+        SMALL.replace(resample_before_q_filter=False, q_filter=False)
+
+
 def test_base_model_never_injects_or_guides():
     base = SMALL.replace(pg_guides_ea=False, ea_guides_pg=False, q_filter=False,
                          increasing_steps=False)

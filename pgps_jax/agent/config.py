@@ -97,6 +97,11 @@ class PGPSConfig:
     """SR: M = ⌊SR·N⌋ candidates are scored by the critic."""
     ss1_size: int = 64
     """SS_1: states on which each candidate's Q is averaged."""
+    resample_before_q_filter: bool = True
+    """Sample the population from N(μ, Σ) every generation (Algorithm 1). False: keep the
+    population drawn at the start (μ and N−1 samples; the TD3 actor takes slot N−1 on its
+    turns) until Q-filtering starts, while μ and Σ still update, as the authors' code does when
+    run with Q-filtering (its population is resampled only by the Q-filter)."""
 
     # --- increasing evaluation steps (eq. 4) ---
     t_init: int = 400
@@ -215,6 +220,9 @@ def _validate(c: PGPSConfig) -> None:
     _require(c.fell_behind_rule in FELL_BEHIND_RULES, "fell_behind_rule", c.fell_behind_rule,
              f"one of {', '.join(FELL_BEHIND_RULES)}")
     _require(c.t_init <= c.t_max, "t_init", c.t_init, f"<= t_max={c.t_max}")
+    _require(c.resample_before_q_filter or c.q_filter, "resample_before_q_filter",
+             c.resample_before_q_filter, "true when q_filter is false (the population kept "
+             "from the start is replaced only by Q-filtering)")
     _require(c.num_candidates >= c.num_elite_filtered, "sample_ratio", c.sample_ratio,
              f"large enough that SR·N = {c.num_candidates} candidates >= the "
              f"{c.num_elite_filtered} population slots Q-filtering fills")

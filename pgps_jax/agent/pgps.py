@@ -6,7 +6,9 @@ are held by the agent, so `agent.generation_step(state)` is one pure function th
 jits (state donated), vmaps over a batch of states (seeds) or scans over generations.
 
 One generation (Algorithm 1, lines 6-37):
- 1. population: slot 0 = elite, the rest ~ N(μ, Σ); after T_start-Q total steps the slots
+ 1. population: slot 0 = elite, the rest ~ N(μ, Σ) (or, with `resample_before_q_filter`
+    off, the population drawn at the start, as the authors' code keeps it, until
+    Q-filtering starts); after T_start-Q total steps the slots
     [N/2, N) are the best of SR·N samples by the critic (Algorithm 2); every F generations the
     TD3 actor takes slot N−1 (PG→EA).
  2. every actor plays one episode of at most T steps (eq. 4); real transitions enter the buffer.
@@ -50,6 +52,9 @@ class TrainState:
     total_steps: jax.Array       # [] int32 env steps so far, warm-up included
     evaluation: EvaluationState  # the test evaluation under way, and when the next is due
     key: jax.Array               # PRNG key
+    kept_population: jax.Array | None = None
+    """[N, P] the population kept until Q-filtering starts (None: resampled every generation;
+    `PGPSConfig.resample_before_q_filter`)."""
 
 
 def episode_limit(total_steps: jax.Array, config: PGPSConfig) -> jax.Array:
@@ -152,14 +157,18 @@ class PGPS:
         eval_key = jax.random.fold_in(key, 100) if eval_key is None else eval_key
         mean = flatten(td3_state.actor)
         actors = jnp.stack([mean] * len(EVALUATED_ACTORS))
-        return TrainState(cem=cem.init(mean, config.sigma_init),
+        search = cem.init(mean, config.sigma_init)
+        kept = (None if config.resample_before_q_filter
+                else cem.ask(jax.random.fold_in(key, 1), search, config.pop_size)
+                .at[0].set(mean))
+        return TrainState(cem=search,
                           td3=td3_state, buffer=buffer,
                           beta=jnp.asarray(config.beta_init, jnp.float32),
                           generation=jnp.zeros((), jnp.int32),
                           total_steps=jnp.asarray(total_steps, jnp.int32),
                           evaluation=evaluation.idle(self.evaluation_config, env, actors,
                                                      eval_key),
-                          key=next_key)
+                          key=next_key, kept_population=kept)
 
     # --- one generation ---------------------------------------------------------------
     def generation_step(self, state: TrainState) -> tuple[TrainState, dict]:
@@ -185,6 +194,8 @@ class PGPS:
         td3_flat = flatten(state.td3.actor)
         if config.pg_guides_ea:
             population = jnp.where(td3_turn, population.at[n - 1].set(td3_flat), population)
+        if state.kept_population is not None:
+            state = state.replace(kept_population=population)  # with the injected TD3 actor
         limit = episode_limit(state.total_steps, config)
         actors, limits = population, jnp.full((n,), limit)
         if config.td3_probe:
@@ -278,10 +289,14 @@ class PGPS:
 
     def population(self, state: TrainState, sample_key: jax.Array, candidate_key: jax.Array,
                     states_key: jax.Array) -> jax.Array:
-        """Algorithm 1 lines 6-10 and Algorithm 2: the N actors to evaluate, [N, P]."""
+        """Algorithm 1 lines 6-10 and Algorithm 2: the N actors to evaluate, [N, P] (the
+        population kept from the start until Q-filtering starts, if the state keeps one)."""
         config = self.config
         n, half = config.pop_size, config.pop_size // 2
         population = cem.ask(sample_key, state.cem, n).at[0].set(state.cem.elite)
+        if state.kept_population is not None:
+            population = jnp.where(state.total_steps >= config.q_filter_start, population,
+                                   state.kept_population)
         if not config.q_filter:
             return population
 
