@@ -109,10 +109,25 @@ class Checkpoints:
                     force=True)
                 self._manager.wait_until_finished()
         except Exception as e:
-            for partial in self.directory.glob(f"{step}.orbax-checkpoint-tmp*"):
-                shutil.rmtree(partial, ignore_errors=True)
+            self._remove_partial(step)
             self._manager.reload()
             raise WriteFailed(self.directory / str(step), e) from None
+
+    def _remove_partial(self, step: int, attempts: int = 50) -> None:
+        """Removes what a failed save of `step` left. The writes of the save's other items may
+        still be under way when one fails, and recreate files while they are removed: waits
+        for them, then removes until nothing is left."""
+        try:
+            self._manager.wait_until_finished()
+        except Exception:  # the save's own failure, already being reported
+            pass
+        for _ in range(attempts):
+            partial = list(self.directory.glob(f"{step}.orbax-checkpoint-tmp*"))
+            if not partial:
+                return
+            for path in partial:
+                shutil.rmtree(path, ignore_errors=True)
+            time.sleep(0.02)
 
     def meta(self, step: int) -> dict:
         """The metadata that was saved with checkpoint `step`; DamagedCheckpoint if it cannot be
