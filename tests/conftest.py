@@ -1,5 +1,6 @@
-"""Fixtures shared by the test modules: one compilation cache for every CLI subprocess of the
-session, and one reduced training run per MuJoCo task, made on first use."""
+"""Fixtures shared by the test modules: one compilation cache for the session's programs (the
+tests' and their CLI subprocesses'), and one reduced training run per MuJoCo task, made on
+first use."""
 
 import os
 import pathlib
@@ -44,6 +45,14 @@ def cache(tmp_path_factory, worker_id) -> pathlib.Path:
     directory = root / "jax_cache"
     directory.mkdir(exist_ok=True)
     return directory
+
+
+@pytest.fixture(scope="session", autouse=True)
+def compilation_cache(cache):
+    """The tests' own programs use the same cache: a program that another test (or worker)
+    compiled loads from it instead of compiling again."""
+    jax.config.update("jax_compilation_cache_dir", str(cache))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
 
 
 HOPPER_RUN = pytest.mark.xdist_group("hopper_run")

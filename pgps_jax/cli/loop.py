@@ -9,6 +9,7 @@ way to its end from its start and evaluates the state the run ends with, both wi
 """
 
 import dataclasses
+import functools
 import time
 from concurrent.futures import Future
 from typing import Optional
@@ -39,29 +40,43 @@ class Programs:
 
     @classmethod
     def compile(cls, agent: PGPS, key: jax.Array, eval_key: jax.Array, fresh: bool = True,
-                seeds: bool = False) -> "Programs":
+                seeds: bool = False, sharding: Optional[jax.sharding.Sharding] = None
+                ) -> "Programs":
         """Starts compiling: `init` (unless not `fresh`: a resumed run, whose state comes
         from a checkpoint) with `play` and `learn` side by side, then `evaluate` in the
         background. `key`, `eval_key`: as `init` takes them (with a leading seed axis if
-        `seeds`)."""
+        `seeds`). `sharding`: where every array of the state and of a generation lies (a
+        batch of seeds split over devices); by default on one device."""
         batched = jax.vmap if seeds else (lambda fn: fn)
-        init = jax.jit(batched(agent.init))
-        play = jax.jit(batched(agent.play), donate_argnums=0)
-        learn = jax.jit(batched(agent.learn), donate_argnums=0)
+        jit = (jax.jit if sharding is None
+               else functools.partial(jax.jit, out_shardings=sharding))
+        init = jit(batched(agent.init))
+        play = jit(batched(agent.play), donate_argnums=0)
+        learn = jit(batched(agent.learn), donate_argnums=0)
         # A fresh run's init is traced once: `lower` reuses the trace.
         abstract = (jax.eval_shape(init, key, eval_key) if fresh
                     else state_shapes(agent, key, eval_key, seeds))
-        programs = {"play": (play, (abstract,)), "learn": (learn, jax.eval_shape(play, abstract))}
+        abstract = _placed(abstract, sharding)
+        played = _placed(jax.eval_shape(play, abstract), sharding)
+        programs = {"play": (play, (abstract,)), "learn": (learn, played)}
         if fresh:
             programs["init"] = (init, (key, eval_key))
-        actors = jax.eval_shape(batched(agent.evaluated_actors), abstract)
+        actors = _placed(jax.eval_shape(batched(agent.evaluated_actors), abstract), sharding)
         futures = compile_ahead(programs, later={
-            "evaluate": (jax.jit(batched(agent.evaluate)), (actors, eval_key))})
+            "evaluate": (jit(batched(agent.evaluate)), (actors, eval_key))})
         return cls(agent, seeds, futures)
 
     def __getitem__(self, name: str):
         """The compiled program `name`, waiting for its compilation if needed."""
         return self.futures[name].result()
+
+
+def _placed(shapes, sharding: Optional[jax.sharding.Sharding]):
+    """`shapes` (ShapeDtypeStructs) with every array placed by `sharding`, if given."""
+    if sharding is None:
+        return shapes
+    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
+                        shapes)
 
 
 @dataclasses.dataclass(frozen=True)

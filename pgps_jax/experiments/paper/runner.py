@@ -1,0 +1,187 @@
+"""One cell of an experiment, run to its budget: its seeds vmapped in one program, split over
+every visible device, checkpointed so that a cut-off cell continues where it stopped.
+
+Seed k of a cell has the keys of `python -m pgps_jax.train env=<task> seed=k` with the cell's
+configuration: PRNGKey(k), evaluations from PRNGKey(k + 100) (vmapped, its arithmetic may
+differ from the single run's in the last bits, and the runs drift apart). The seeds form one batch
+(`pgps_jax.cli.loop`, `seeds=True`) whose leading axis is sharded over a one-axis device mesh
+(`seeds`); a batch that does not divide evenly is padded with the next seeds, run and dropped.
+Across hosts, start every process with `jax.distributed.initialize()` first: `jax.devices()`
+then lists all hosts' devices and the same mesh spans them (tested on one host only).
+
+The batch trains until every seed has its budget of env steps, so some seeds run a few
+generations past it; their curves stop at the budget, and `result.json` gives the env steps
+each seed's final state had.
+
+A cell's folder holds, per seed, `seed<k>.csv`: its test evaluations up to the budget in the
+authors' format (Step, Mean, Std, Reward1..RewardE of μ, as `eval.csv` of a training run) and
+`seed<k>_generations.csv`: per generation, the return of every slot of the population (Figure
+6: the Q-filtered slots against the sampled ones); `result.json` once
+the cell is done (the final evaluation of μ, the TD3 actor and the elite on fresh start states
+PRNGKey(k + 10,000), the wall-clock and the device); and `checkpoints/` while it runs.
+"""
+
+import dataclasses
+import json
+import math
+import pathlib
+import time
+from typing import Callable, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, for_task
+from pgps_jax.agent.metrics import population_return_key, returns_key
+from pgps_jax.agent.pgps import PGPS
+from pgps_jax.cli import loop
+from pgps_jax.cli import run_dir as rundir
+from pgps_jax.cli.checkpoint import Checkpoints
+from pgps_jax.envs import make_env
+from pgps_jax.experiments.paper.grid import Cell
+
+RESULT = "result.json"
+FINAL_KEY_OFFSET = 10_000
+"""Seed k's final evaluation starts from PRNGKey(k + FINAL_KEY_OFFSET): states no evaluation
+during training saw."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """How far and how each cell runs."""
+
+    steps: int = 1_000_000
+    """Env steps of every seed (the warm-up included)."""
+    seeds: int = 5
+    """Seeds 1..seeds."""
+    evaluation: EvaluationConfig = EvaluationConfig()
+    checkpoint_every: int = 50
+    """Generations between checkpoints."""
+    overrides: tuple = ()
+    """(field, value) pairs of PGPSConfig replacing every cell's (e.g. reduced sizes)."""
+
+
+def seed_file(seed: int) -> str:
+    return f"seed{seed}.csv"
+
+
+def seed_mesh() -> jax.sharding.Mesh:
+    """A one-axis mesh (`seeds`) over every visible device."""
+    return jax.make_mesh((len(jax.devices()),), ("seeds",),
+                         axis_types=(jax.sharding.AxisType.Auto,))
+
+
+def padded_seeds(seeds: int, devices: int) -> int:
+    """The batch: `seeds` rounded up to a multiple of the devices."""
+    return math.ceil(seeds / devices) * devices
+
+
+def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
+             on_generation: Optional[Callable[[int, np.ndarray], None]] = None) -> dict:
+    """Runs `cell` to `budget.steps` in `directory` (continuing its checkpoint if it has one)
+    and returns its result (as `result.json` holds it). A done cell is not run again.
+    `on_generation(generation, env_steps [seeds])` is called after every generation."""
+    directory.mkdir(parents=True, exist_ok=True)
+    if (directory / RESULT).exists():
+        return json.loads((directory / RESULT).read_text())
+    config = for_task(cell.task, **dict(cell.overrides), **dict(budget.overrides))
+    agent = PGPS(config, make_env(cell.task), budget.evaluation)
+    mesh = seed_mesh()
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seeds"))
+    batch = padded_seeds(budget.seeds, mesh.size)
+    numbers = jnp.arange(1, batch + 1)
+    keys = jax.device_put(jax.vmap(jax.random.PRNGKey)(numbers), sharding)
+    eval_keys = jax.device_put(jax.vmap(jax.random.PRNGKey)(numbers + 100), sharding)
+    checkpoints = Checkpoints(directory / "checkpoints", keep=2)
+    start = time.perf_counter()
+    try:
+        if checkpoints.latest_step() is None:
+            programs = loop.Programs.compile(agent, keys, eval_keys, seeds=True,
+                                             sharding=sharding)
+            state = programs["init"](keys, eval_keys)
+            generation, elapsed = 0, 0.0
+            curves, populations = [[] for _ in range(batch)], [[] for _ in range(batch)]
+        else:
+            shapes = loop.state_shapes(agent, keys, eval_keys, seeds=True)
+            generation, state, meta = checkpoints.restore_latest(shapes)
+            state = jax.device_put(state, sharding)
+            curves, populations = meta["curves"], meta["populations"]
+            elapsed = meta["elapsed_s"]
+            programs = loop.Programs.compile(agent, keys, eval_keys, fresh=False, seeds=True,
+                                             sharding=sharding)
+        steps = np.asarray(jax.device_get(state.total_steps))
+        while steps[:budget.seeds].min() < budget.steps:
+            state, done = loop.generation(programs, state)
+            generation += 1
+            m = done.metrics
+            for seed in np.flatnonzero(m["eval/done"]):
+                curves[seed].append(_evaluation_row(m, seed, int(m["eval/step"][seed])))
+            for seed in range(batch):
+                populations[seed].append([generation] + [
+                    np.asarray(m[key][seed]).item() for key in _population_keys(config)])
+            steps = np.asarray(m["gen/total_steps"])
+            if generation % budget.checkpoint_every == 0:
+                checkpoints.save(generation, state, {
+                    "curves": curves, "populations": populations,
+                    "elapsed_s": elapsed + time.perf_counter() - start})
+                _write_curves(directory, curves[:budget.seeds], budget.steps)
+                _write_populations(directory, populations[:budget.seeds], config)
+            if on_generation is not None:
+                on_generation(generation, steps[:budget.seeds])
+        final_keys = jax.device_put(
+            jax.vmap(jax.random.PRNGKey)(numbers + FINAL_KEY_OFFSET), sharding)
+        state, finished = loop.finish(programs, state, final_keys)
+    finally:
+        checkpoints.close()
+    for seed in np.flatnonzero(finished.unfinished_active):  # played from its start
+        curves[seed].append(_evaluation_row(finished.unfinished, seed,
+                                            int(finished.unfinished_step[seed])))
+    _write_curves(directory, curves[:budget.seeds], budget.steps)
+    _write_populations(directory, populations[:budget.seeds], config)
+    result = {"task": cell.task, "config": cell.config, "overrides": dict(cell.overrides),
+              "steps": budget.steps, "seeds": list(range(1, budget.seeds + 1)),
+              "env_steps": steps[:budget.seeds].tolist(), "generations": generation,
+              "final": {actor: np.asarray(finished.final[f"eval/{actor}_mean"])
+                        [:budget.seeds].tolist() for actor in EVALUATED_ACTORS},
+              "wall_s": elapsed + time.perf_counter() - start,
+              "device": f"{mesh.size} × {jax.devices()[0].device_kind}"}
+    rundir.write_atomic(directory / RESULT, json.dumps(result, indent=1).encode())
+    return result
+
+
+def _population_keys(config) -> list[str]:
+    """The per-generation metrics of `seed<k>_generations.csv`, after the generation."""
+    return (["gen/total_steps", "gen/episode_limit", "gen/q_filter_active",
+             "td3/in_population"]
+            + [population_return_key(i) for i in range(config.pop_size)])
+
+
+def _write_populations(directory: pathlib.Path, populations: list, config) -> None:
+    """seed<k>_generations.csv of every seed: per generation, its env steps, episode limit,
+    whether the critic chose slots [N/2, N) and the TD3 actor played slot N−1, and the
+    return of every slot (slot 0 the elite; Figure 6 compares the Q-filtered slots with the
+    sampled ones)."""
+    header = ["generation", "env_steps", "T", "q_filter_active", "td3_in_population"] + [
+        f"return_{i}" for i in range(config.pop_size)]
+    for seed, rows in enumerate(populations, start=1):
+        lines = [",".join(header)] + [",".join(rundir.cell(v) for v in row) for row in rows]
+        rundir.write_atomic(directory / f"seed{seed}_generations.csv",
+                            ("\n".join(lines) + "\n").encode())
+
+
+def _evaluation_row(metrics: dict, seed: int, step: int) -> list:
+    """Step, mean, std and the test returns of seed `seed`'s μ."""
+    returns = np.asarray(metrics[returns_key("mu")][seed])
+    return [step, float(returns.mean()), float(returns.std()), *map(float, returns)]
+
+
+def _write_curves(directory: pathlib.Path, curves: list, steps: int) -> None:
+    """seed<k>.csv of every seed: its evaluations so far, up to `steps`, in the authors'
+    format."""
+    for seed, rows in enumerate(curves, start=1):
+        rows = [row for row in rows if row[0] <= steps]
+        episodes = len(rows[0]) - 3 if rows else 0
+        lines = [",".join(rundir.eval_columns(episodes))]
+        lines += [",".join(rundir.cell(v) for v in [i, *row]) for i, row in enumerate(rows)]
+        rundir.write_atomic(directory / seed_file(seed), ("\n".join(lines) + "\n").encode())

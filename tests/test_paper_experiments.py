@@ -1,0 +1,148 @@
+"""The paper's experiment runner on tiny cells of hopper (real MJX physics): its outputs in the
+authors' format, a cut-off cell that continues exactly, seeds split over two devices, and its
+command line's errors."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pgps_jax.agent.config import EvaluationConfig
+from pgps_jax.experiments.paper import command, grid, runner
+
+from train_cli import REPO, read_csv, run_here
+
+TINY = dict(pop_size=2, top_k=1, actor_hidden=(16,), critic_hidden=(16,), batch_size=16,
+            buffer_size=2000, warmup_steps=200, t_init=20, t_max=40, t_interval=400,
+            q_filter_start=400, sample_ratio=4, ss1_size=8, ss2_size=16)
+"""The tests' reduced PGPS (conftest.REDUCED) as PGPSConfig fields."""
+BUDGET = runner.Budget(steps=600, seeds=2, checkpoint_every=2, overrides=tuple(TINY.items()),
+                       evaluation=EvaluationConfig(every=200, episodes=2, steps=50))
+HOPPER = grid.Cell("hopper", "pgps", {})
+
+pytestmark = pytest.mark.xdist_group("paper")  # one worker runs the uninterrupted cell once
+
+
+class Stop(Exception):
+    pass
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    out = tmp_path_factory.mktemp("paper")
+    results = command.run("figure4", out, BUDGET, tasks=["hopper"], progress=False)
+    return out, results
+
+
+def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrupted):
+    out, (result,) = uninterrupted
+    cell = out / "figure4" / "hopper" / "pgps"
+    assert result["seeds"] == [1, 2] and min(result["env_steps"]) >= BUDGET.steps
+    for seed in (1, 2):
+        header, rows = read_csv(cell / runner.seed_file(seed))
+        assert header == ["", "Step", "Mean", "Std", "Reward1", "Reward2"]
+        steps = [int(r["Step"]) for r in rows]
+        assert steps[0] == 200 and steps == sorted(steps) and steps[-1] <= BUDGET.steps
+        for r in rows:
+            rewards = [float(r["Reward1"]), float(r["Reward2"])]
+            assert float(r["Mean"]) == pytest.approx(np.mean(rewards), rel=1e-6)
+            assert float(r["Std"]) == pytest.approx(np.std(rewards), rel=1e-5, abs=1e-6)
+        header, rows = read_csv(cell / f"seed{seed}_generations.csv")
+        assert header == ["generation", "env_steps", "T", "q_filter_active",
+                          "td3_in_population", "return_0", "return_1"]
+        assert [int(r["generation"]) for r in rows] == list(range(1, result["generations"] + 1))
+        began = [TINY["warmup_steps"]] + [int(r["env_steps"]) for r in rows[:-1]]
+        assert [int(r["q_filter_active"]) for r in rows] == [
+            int(step >= TINY["q_filter_start"]) for step in began]
+    header, rows = read_csv(out / "figure4" / command.FINAL_RETURNS)
+    assert header == ["task", "config", "seed", "env_steps", "mu_final", "td3_final",
+                      "elite_final"]
+    assert [(r["task"], r["seed"]) for r in rows] == [("hopper", "1"), ("hopper", "2")]
+    assert [float(r["mu_final"]) for r in rows] == pytest.approx(result["final"]["mu"])
+    assert json.loads((cell / runner.RESULT).read_text()) == result
+
+
+def test_a_done_cell_is_not_run_again(uninterrupted):
+    out, (result,) = uninterrupted
+    before = (out / "figure4" / "hopper" / "pgps" / runner.RESULT).stat().st_mtime_ns
+
+    def never(generation, steps):
+        raise AssertionError("a done cell trained")
+    again = runner.run_cell(HOPPER, out / "figure4" / "hopper" / "pgps", BUDGET, never)
+    assert again == result
+    assert (out / "figure4" / "hopper" / "pgps" / runner.RESULT).stat().st_mtime_ns == before
+
+
+def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninterrupted,
+                                                                         tmp_path):
+    out, (result,) = uninterrupted
+    directory = tmp_path / "cell"
+
+    def cut_off(generation, steps):
+        if generation == 3:
+            raise Stop
+    with pytest.raises(Stop):
+        runner.run_cell(HOPPER, directory, BUDGET, cut_off)
+    assert not (directory / runner.RESULT).exists()
+    generations = []
+    resumed = runner.run_cell(HOPPER, directory, BUDGET,
+                              lambda generation, steps: generations.append(generation))
+    assert generations[0] == 3  # from the checkpoint of generation 2
+    assert {**resumed, "wall_s": 0} == {**result, "wall_s": 0}
+    for seed in (1, 2):
+        for name in (runner.seed_file(seed), f"seed{seed}_generations.csv"):
+            assert ((directory / name).read_bytes()
+                    == (out / "figure4" / "hopper" / "pgps" / name).read_bytes())
+
+
+def test_seeds_are_split_over_the_devices(tmp_path):
+    """Three seeds on two (host) devices: a batch of four, the fourth dropped."""
+    env = {**os.environ, "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")
+           + " --xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
+    sets = [f"{k}={v!r}" for k, v in TINY.items()]
+    result = subprocess.run(
+        [sys.executable, "-m", "pgps_jax.experiments.paper", "figure4", "--tasks", "hopper",
+         "--steps", "400", "--seeds", "3", "--no-progress", "--set", *sets, "--eval",
+         "every=200", "episodes=2", "steps=50", "--out", str(tmp_path)],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    cell = json.loads((tmp_path / "figure4" / "hopper" / "pgps" / runner.RESULT).read_text())
+    assert cell["device"].startswith("2 × ") and cell["seeds"] == [1, 2, 3]
+    assert len(cell["final"]["mu"]) == 3 and np.all(np.isfinite(cell["final"]["mu"]))
+    assert sorted(p.name for p in (tmp_path / "figure4" / "hopper" / "pgps").glob("*.csv")) == [
+        f"seed{k}{kind}.csv" for k in (1, 2, 3) for kind in ("", "_generations")]
+
+
+def test_padding_rounds_the_batch_up_to_the_devices():
+    assert [runner.padded_seeds(s, 2) for s in (1, 2, 3, 5)] == [2, 2, 4, 6]
+    assert runner.padded_seeds(5, 1) == 5
+
+
+def test_the_grids_hold_the_paper_s_cells():
+    assert [c.task for c in grid.cells("figure4")] == ["swimmer", "halfcheetah", "hopper",
+                                                      "walker2d", "ant"]
+    table1 = grid.cells("table1", tasks=("ant",))
+    assert [c.config for c in table1] == ["base", "pg_to_ea", "ea_to_pg", "q_filter", "pgps"]
+    flags = ("pg_guides_ea", "ea_guides_pg", "q_filter", "increasing_steps")
+    switched_on = [sum(dict(c.overrides).get(f, True) for f in flags) for c in table1]
+    assert switched_on == [0, 1, 2, 3, 4]  # each model adds one coupling to the one before
+
+
+@pytest.mark.parametrize("args, words", [
+    (["figure7"], ["unknown experiment 'figure7'", "figure4", "table1"]),
+    (["table1", "--tasks", "swimmer"], ["table1 has no task swimmer", "ant", "walker2d"]),
+    (["figure4", "--configs", "td3"], ["no configuration td3", "pgps"]),
+    (["figure4", "--set", "pop_sise=4"], ["unknown PGPSConfig field pop_sise", "pop_size"]),
+    (["figure4", "--set", "top_k=99"], ["top_k=99", "pop_size"]),
+    (["figure4", "--eval", "often=3"], ["--eval", "every, episodes, steps"]),
+    (["figure4", "--steps", "0"], ["--steps must be a positive integer"]),
+])
+def test_bad_input_is_one_message_and_status_2(tmp_path, args, words):
+    result = run_here("experiments.paper.command", [*args, "--out", str(tmp_path)], tmp_path)
+    assert result.returncode == 2, result.stderr[-2000:]
+    for word in words:
+        assert word in result.stderr
+    assert "Traceback" not in result.stderr and list(tmp_path.iterdir()) == []
