@@ -2,6 +2,7 @@
 authors' format, a cut-off cell that continues exactly, seeds split over two devices, and its
 command line's errors."""
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -10,7 +11,8 @@ import sys
 import numpy as np
 import pytest
 
-from pgps_jax.agent.config import EvaluationConfig
+from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
+from pgps_jax.cli.errors import UsageError
 from pgps_jax.experiments.paper import command, grid, runner
 
 from train_cli import REPO, read_csv, run_here
@@ -63,6 +65,7 @@ def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrup
     assert [(r["task"], r["seed"]) for r in rows] == [("hopper", "1"), ("hopper", "2")]
     assert [float(r["mu_final"]) for r in rows] == pytest.approx(result["final"]["mu"])
     assert json.loads((cell / runner.RESULT).read_text()) == result
+    assert not (cell / "checkpoints").exists()  # a done cell keeps its results only
 
 
 def test_a_done_cell_is_not_run_again(uninterrupted):
@@ -74,6 +77,23 @@ def test_a_done_cell_is_not_run_again(uninterrupted):
     again = runner.run_cell(HOPPER, out / "figure4" / "hopper" / "pgps", BUDGET, never)
     assert again == result
     assert (out / "figure4" / "hopper" / "pgps" / runner.RESULT).stat().st_mtime_ns == before
+
+
+def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
+    out, _ = uninterrupted
+    longer = dataclasses.replace(BUDGET, steps=800)
+    with pytest.raises(UsageError, match="steps: 600 there, 800 now"):
+        command.run("figure4", out, longer, tasks=["hopper"], progress=False)
+    other = dataclasses.replace(BUDGET, overrides=BUDGET.overrides + (("ss1_size", 4),))
+    with pytest.raises(UsageError, match="config.ss1_size: 8 there, 4 now"):
+        command.run("figure4", out, other, tasks=["hopper"], progress=False)
+
+
+def test_set_reads_values_as_the_training_command_line_does():
+    parsed = command._assignments(["resample_before_q_filter=false", "actor_hidden=[16,16]",
+                                   "pop_size=4", "sigma_init=1e-3"], "--set", PGPSConfig)
+    assert parsed == {"resample_before_q_filter": False, "actor_hidden": (16, 16),
+                      "pop_size": 4, "sigma_init": 1e-3}
 
 
 def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninterrupted,
@@ -102,7 +122,7 @@ def test_seeds_are_split_over_the_devices(tmp_path):
     """Three seeds on two (host) devices: a batch of four, the fourth dropped."""
     env = {**os.environ, "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")
            + " --xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
-    sets = [f"{k}={v!r}" for k, v in TINY.items()]
+    sets = [f"{k}={list(v) if isinstance(v, tuple) else v}" for k, v in TINY.items()]
     result = subprocess.run(
         [sys.executable, "-m", "pgps_jax.experiments.paper", "figure4", "--tasks", "hopper",
          "--steps", "400", "--seeds", "3", "--no-progress", "--set", *sets, "--eval",
@@ -135,9 +155,12 @@ def test_the_grids_hold_the_paper_s_cells():
     (["figure7"], ["unknown experiment 'figure7'", "figure4", "table1"]),
     (["table1", "--tasks", "swimmer"], ["table1 has no task swimmer", "ant", "walker2d"]),
     (["figure4", "--configs", "td3"], ["no configuration td3", "pgps"]),
-    (["figure4", "--set", "pop_sise=4"], ["unknown PGPSConfig field pop_sise", "pop_size"]),
+    (["figure4", "--set", "pop_sise=4"], ["--set 'pop_sise=4'", "pop_size"]),
+    (["figure4", "--set", "q_filter=maybe"], ["--set q_filter must be true or false"]),
+    (["table1", "--set", "q_filter=true"], ["--set q_filter", "sets it itself"]),
+    (["figure4", "--steps", "5000"], ["--steps 5000 does not exceed the random warm-up"]),
     (["figure4", "--set", "top_k=99"], ["top_k=99", "pop_size"]),
-    (["figure4", "--eval", "often=3"], ["--eval", "every, episodes, steps"]),
+    (["figure4", "--eval", "often=3"], ["--eval 'often=3'", "every, episodes, steps"]),
     (["figure4", "--steps", "0"], ["--steps must be a positive integer"]),
 ])
 def test_bad_input_is_one_message_and_status_2(tmp_path, args, words):
@@ -145,4 +168,5 @@ def test_bad_input_is_one_message_and_status_2(tmp_path, args, words):
     assert result.returncode == 2, result.stderr[-2000:]
     for word in words:
         assert word in result.stderr
-    assert "Traceback" not in result.stderr and list(tmp_path.iterdir()) == []
+    assert "Traceback" not in result.stderr and result.stderr.count("error:") == 1
+    assert list(tmp_path.iterdir()) == []

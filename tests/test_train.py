@@ -1,7 +1,9 @@
 """`python -m pgps_jax.train` end to end on a tiny run: every output file and its columns,
 re-evaluation, bad inputs (message, non-zero exit, nothing half-written) and a NaN stop."""
 
+import json
 import pathlib
+import shutil
 
 import imageio.v3 as iio
 import jax.numpy as jnp
@@ -178,6 +180,22 @@ def test_an_existing_run_is_never_overwritten_or_resumed_with_other_settings(
     for word in words:
         assert word in result.stderr
     assert _snapshot(run_dir) == before
+
+
+def test_a_checkpoint_from_before_a_new_setting_resumes_under_its_default(reference,
+                                                                          tmp_path):
+    """A checkpoint written before PGPSConfig gained a field (its saved configuration lacks
+    it) resumes with resume=true: the field takes its default, the behaviour from before."""
+    run_dir, _ = reference
+    older = tmp_path / "older"
+    shutil.copytree(run_dir, older)
+    for path in (older / rundir.CHECKPOINTS).glob("*/meta/metadata"):
+        meta = json.loads(path.read_text())
+        del meta["config"]["pgps"]["resample_before_q_filter"]
+        path.write_text(json.dumps(meta))
+    result = run_here("train", tiny(f"run_dir={older}", "resume=true"), tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "done:" in result.stdout
 
 
 def test_resume_by_directory_refuses_other_explicit_settings(reference, tmp_path):

@@ -56,12 +56,12 @@ class Programs:
         # A fresh run's init is traced once: `lower` reuses the trace.
         abstract = (jax.eval_shape(init, key, eval_key) if fresh
                     else state_shapes(agent, key, eval_key, seeds))
-        abstract = _placed(abstract, sharding)
-        played = _placed(jax.eval_shape(play, abstract), sharding)
+        abstract = placed(abstract, sharding)
+        played = placed(jax.eval_shape(play, abstract), sharding)
         programs = {"play": (play, (abstract,)), "learn": (learn, played)}
         if fresh:
             programs["init"] = (init, (key, eval_key))
-        actors = _placed(jax.eval_shape(batched(agent.evaluated_actors), abstract), sharding)
+        actors = placed(jax.eval_shape(batched(agent.evaluated_actors), abstract), sharding)
         futures = compile_ahead(programs, later={
             "evaluate": (jit(batched(agent.evaluate)), (actors, eval_key))})
         return cls(agent, seeds, futures)
@@ -71,7 +71,7 @@ class Programs:
         return self.futures[name].result()
 
 
-def _placed(shapes, sharding: Optional[jax.sharding.Sharding]):
+def placed(shapes, sharding: Optional[jax.sharding.Sharding]):
     """`shapes` (ShapeDtypeStructs) with every array placed by `sharding`, if given."""
     if sharding is None:
         return shapes

@@ -49,6 +49,17 @@ def _checkpointed_config(directory: rundir.RunDir) -> tuple[int, dict]:
         checkpoints.close()
 
 
+def _with_new_fields(saved: dict) -> dict:
+    """A checkpoint's configuration with the PGPSConfig fields added since it was written
+    set to their defaults (each new field's default keeps the behaviour from before it)."""
+    saved = copy.deepcopy(saved)
+    defaults = {f.name: f.default for f in dataclasses.fields(PGPSConfig)}
+    pgps = saved.setdefault("pgps", {})
+    for name, value in defaults.items():
+        pgps.setdefault(name, list(value) if isinstance(value, tuple) else value)
+    return saved
+
+
 def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
     """Decides between a new run and a resumed one; raises UsageError before any training.
 
@@ -97,6 +108,7 @@ def _plan_resume(run: RunSettings, config: PGPSConfig, values: dict, overrides: 
         return Plan(run, config, values, directory, lock, None)
 
     step, saved = _checkpointed_config(directory)
+    saved = _with_new_fields(saved)
     effective = values
     if by_path:
         explicit = [k for k in override_keys(overrides) if k not in ("resume", "run_dir")]

@@ -10,18 +10,22 @@ done cells are skipped and a cut-off cell continues from its last checkpoint.
 """
 
 import argparse
-import ast
+import dataclasses
+import json
 import pathlib
 import sys
+import typing
 
 import numpy as np
+import yaml
 from tqdm import tqdm
 
 from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, PGPSConfig, for_task
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import UsageError, report
+from pgps_jax.cli.run_config import coerce
 from pgps_jax.experiments.paper.grid import EXPERIMENTS, Cell, cells
-from pgps_jax.experiments.paper.runner import Budget, run_cell
+from pgps_jax.experiments.paper.runner import RESULT, Budget, run_cell
 
 OUT = pathlib.Path("benchmarks/results/paper")
 FINAL_RETURNS = "final_returns.csv"
@@ -40,14 +44,17 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
     except ValueError as e:
         raise UsageError(str(e)) from None
     for cell in chosen:  # every configuration is valid before any cell runs
+        clash = sorted(set(cell.overrides) & set(dict(budget.overrides)))
+        if clash:
+            raise UsageError(f"--set {', '.join(clash)}: the {experiment} cell {cell.task} "
+                             f"{cell.config} sets it itself")
         try:
-            for_task(cell.task, **dict(cell.overrides), **dict(budget.overrides))
-        except TypeError:
-            unknown = sorted(set(dict(budget.overrides)) - set(PGPSConfig.__dataclass_fields__))
-            raise UsageError(f"--set: unknown PGPSConfig field {', '.join(unknown)}; valid: "
-                             f"{', '.join(PGPSConfig.__dataclass_fields__)}") from None
+            config = for_task(cell.task, **dict(cell.overrides), **dict(budget.overrides))
         except ValueError as e:
             raise UsageError(f"{cell.task} {cell.config}: {e}") from None
+        if budget.steps <= config.warmup_steps:
+            raise UsageError(f"--steps {budget.steps} does not exceed the random warm-up "
+                             f"(warmup_steps={config.warmup_steps})")
     results = []
     for cell in chosen:
         with tqdm(total=budget.steps * budget.seeds, unit="step", unit_scale=True,
@@ -57,12 +64,15 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
                 bar.set_postfix_str(f"gen {generation}", refresh=False)
             results.append(run_cell(cell, cell_directory(out, experiment, cell), budget,
                                     advanced))
-    write_final_returns(out / experiment / FINAL_RETURNS, results)
+    write_final_returns(out / experiment / FINAL_RETURNS,
+                        [json.loads(p.read_text())
+                         for p in sorted((out / experiment).glob(f"*/*/{RESULT}"))])
     return results
 
 
 def write_final_returns(path: pathlib.Path, results: list[dict]) -> None:
-    """One row per cell and seed: the final test return of μ, the TD3 actor and the elite."""
+    """One row per done cell and seed: the final test return of μ, the TD3 actor and the
+    elite."""
     header = ["task", "config", "seed", "env_steps"] + [f"{a}_final" for a in EVALUATED_ACTORS]
     lines = [",".join(header)]
     for r in results:
@@ -74,17 +84,26 @@ def write_final_returns(path: pathlib.Path, results: list[dict]) -> None:
     rundir.write_atomic(path, ("\n".join(lines) + "\n").encode())
 
 
-def _assignments(pairs: list[str], what: str) -> dict:
-    """`name=value` pairs, values as Python literals where they parse, else strings."""
+def _assignments(pairs: list[str], what: str, fields: type) -> dict:
+    """`name=value` pairs as the dataclass `fields`' field types (values read as YAML, as on
+    the training command line: true, 400, [64,64])."""
+    hints = typing.get_type_hints(fields)
     values = {}
     for pair in pairs:
         name, sep, text = pair.partition("=")
-        if not sep or not name:
-            raise UsageError(f"{what} {pair!r} is not NAME=VALUE")
+        if not sep or name not in hints:
+            raise UsageError(f"{what} {pair!r}: expected FIELD=VALUE with FIELD one of "
+                             f"{', '.join(f.name for f in dataclasses.fields(fields))}")
         try:
-            values[name] = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            values[name] = text
+            value = yaml.safe_load(text)
+        except yaml.YAMLError:
+            value = text
+        if isinstance(value, str):  # YAML reads 1e-3 as text
+            try:
+                value = float(value)
+            except ValueError:
+                pass
+        values[name] = coerce(f"{what} {name}", value, hints[name])
     return values
 
 
@@ -111,14 +130,12 @@ def main(argv=None) -> int:
             if getattr(args, name) <= 0:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer")
         try:
-            budget = Budget(steps=args.steps, seeds=args.seeds,
-                            evaluation=EvaluationConfig(**_assignments(args.eval, "--eval")),
-                            checkpoint_every=args.checkpoint_every,
-                            overrides=tuple(_assignments(args.set, "--set").items()))
-        except TypeError as e:
-            raise UsageError(f"--eval: {e}; valid: every, episodes, steps") from None
+            evaluation = EvaluationConfig(**_assignments(args.eval, "--eval", EvaluationConfig))
         except ValueError as e:
             raise UsageError(str(e)) from None
+        budget = Budget(steps=args.steps, seeds=args.seeds, evaluation=evaluation,
+                        checkpoint_every=args.checkpoint_every,
+                        overrides=tuple(_assignments(args.set, "--set", PGPSConfig).items()))
         run(args.experiment, args.out, budget, args.tasks, args.configs,
             progress=not args.no_progress)
         return 0

@@ -6,25 +6,27 @@ configuration: PRNGKey(k), evaluations from PRNGKey(k + 100) (vmapped, its arith
 differ from the single run's in the last bits, and the runs drift apart). The seeds form one batch
 (`pgps_jax.cli.loop`, `seeds=True`) whose leading axis is sharded over a one-axis device mesh
 (`seeds`); a batch that does not divide evenly is padded with the next seeds, run and dropped.
-Across hosts, start every process with `jax.distributed.initialize()` first: `jax.devices()`
-then lists all hosts' devices and the same mesh spans them (tested on one host only).
+One host: the loop fetches each generation's metrics to this process.
 
 The batch trains until every seed has its budget of env steps, so some seeds run a few
-generations past it; their curves stop at the budget, and `result.json` gives the env steps
-each seed's final state had.
+generations past it: their curves keep the evaluations that began within the budget, and
+`result.json` gives the env steps of the state each seed's final evaluation tested.
 
 A cell's folder holds, per seed, `seed<k>.csv`: its test evaluations up to the budget in the
-authors' format (Step, Mean, Std, Reward1..RewardE of μ, as `eval.csv` of a training run) and
+authors' format (Step, Mean, Std, Reward1..RewardE of μ: the columns of a training run's
+`eval.csv`) and
 `seed<k>_generations.csv`: per generation, the return of every slot of the population (Figure
 6: the Q-filtered slots against the sampled ones); `result.json` once
 the cell is done (the final evaluation of μ, the TD3 actor and the elite on fresh start states
-PRNGKey(k + 10,000), the wall-clock and the device); and `checkpoints/` while it runs.
+PRNGKey(k + 10,000), the settings, the wall-clock and the device); and `checkpoints/` while
+it runs. A cell is continued or counted as done only under the settings it was started with.
 """
 
 import dataclasses
 import json
 import math
 import pathlib
+import shutil
 import time
 from typing import Callable, Optional
 
@@ -38,6 +40,7 @@ from pgps_jax.agent.pgps import PGPS
 from pgps_jax.cli import loop
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.checkpoint import Checkpoints
+from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import make_env
 from pgps_jax.experiments.paper.grid import Cell
 
@@ -56,7 +59,7 @@ class Budget:
     seeds: int = 5
     """Seeds 1..seeds."""
     evaluation: EvaluationConfig = EvaluationConfig()
-    checkpoint_every: int = 50
+    checkpoint_every: int = 10
     """Generations between checkpoints."""
     overrides: tuple = ()
     """(field, value) pairs of PGPSConfig replacing every cell's (e.g. reduced sizes)."""
@@ -82,12 +85,16 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     """Runs `cell` to `budget.steps` in `directory` (continuing its checkpoint if it has one)
     and returns its result (as `result.json` holds it). A done cell is not run again.
     `on_generation(generation, env_steps [seeds])` is called after every generation."""
-    directory.mkdir(parents=True, exist_ok=True)
-    if (directory / RESULT).exists():
-        return json.loads((directory / RESULT).read_text())
     config = for_task(cell.task, **dict(cell.overrides), **dict(budget.overrides))
-    agent = PGPS(config, make_env(cell.task), budget.evaluation)
     mesh = seed_mesh()
+    settings = _settings(config, budget, mesh.size)
+    with rundir.writing(directory):
+        directory.mkdir(parents=True, exist_ok=True)
+    if (directory / RESULT).exists():
+        result = json.loads((directory / RESULT).read_text())
+        _require_same(directory, result["settings"], settings)
+        return result
+    agent = PGPS(config, make_env(cell.task), budget.evaluation)
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seeds"))
     batch = padded_seeds(budget.seeds, mesh.size)
     numbers = jnp.arange(1, batch + 1)
@@ -103,9 +110,11 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             generation, elapsed = 0, 0.0
             curves, populations = [[] for _ in range(batch)], [[] for _ in range(batch)]
         else:
-            shapes = loop.state_shapes(agent, keys, eval_keys, seeds=True)
+            _require_same(directory, checkpoints.meta(checkpoints.latest_step())["settings"],
+                          settings)
+            shapes = loop.placed(loop.state_shapes(agent, keys, eval_keys, seeds=True),
+                                 sharding)
             generation, state, meta = checkpoints.restore_latest(shapes)
-            state = jax.device_put(state, sharding)
             curves, populations = meta["curves"], meta["populations"]
             elapsed = meta["elapsed_s"]
             programs = loop.Programs.compile(agent, keys, eval_keys, fresh=False, seeds=True,
@@ -123,7 +132,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             steps = np.asarray(m["gen/total_steps"])
             if generation % budget.checkpoint_every == 0:
                 checkpoints.save(generation, state, {
-                    "curves": curves, "populations": populations,
+                    "settings": settings, "curves": curves, "populations": populations,
                     "elapsed_s": elapsed + time.perf_counter() - start})
                 _write_curves(directory, curves[:budget.seeds], budget.steps)
                 _write_populations(directory, populations[:budget.seeds], config)
@@ -145,9 +154,30 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
               "final": {actor: np.asarray(finished.final[f"eval/{actor}_mean"])
                         [:budget.seeds].tolist() for actor in EVALUATED_ACTORS},
               "wall_s": elapsed + time.perf_counter() - start,
-              "device": f"{mesh.size} × {jax.devices()[0].device_kind}"}
+              "device": f"{mesh.size} × {jax.devices()[0].device_kind}", "settings": settings}
     rundir.write_atomic(directory / RESULT, json.dumps(result, indent=1).encode())
+    shutil.rmtree(directory / "checkpoints", ignore_errors=True)  # the result is all it keeps
     return result
+
+
+def _settings(config, budget: Budget, devices: int) -> dict:
+    """What a cell's results depend on (JSON values)."""
+    return json.loads(json.dumps({
+        "config": dataclasses.asdict(config),
+        "evaluation": dataclasses.asdict(budget.evaluation),
+        "steps": budget.steps, "seeds": budget.seeds, "devices": devices}))
+
+
+def _require_same(directory: pathlib.Path, saved: dict, now: dict) -> None:
+    """UsageError naming the settings in which the cell in `directory` differs from `now`."""
+    differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now" for key in now
+              if key != "config" and saved.get(key) != now[key]]
+    differ += [f"config.{k}: {saved['config'].get(k)!r} there, {v!r} now"
+               for k, v in now["config"].items() if saved["config"].get(k) != v]
+    if differ:
+        raise UsageError(f"{directory} holds this cell run with other settings; use another "
+                         "--out, or remove the folder to run it again. Differences:\n  "
+                         + "\n  ".join(differ))
 
 
 def _population_keys(config) -> list[str]:
