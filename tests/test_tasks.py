@@ -9,12 +9,12 @@ from pgps_jax.cli import run_dir as rundir
 from pgps_jax.envs import TASKS
 
 from conftest import HOPPER_RUN
-from train_cli import checkpoint_steps, leftovers, read_csv, run
+from train_cli import checkpoint_steps, leftovers, read_csv, run_here
 
 
 @pytest.mark.parametrize("task", [pytest.param(t, marks=HOPPER_RUN) if t == "hopper" else t
                                   for t in TASKS])
-def test_train_checkpoints_and_evaluate_reproduces_the_last_evaluation(task, task_runs, cache,
+def test_train_checkpoints_and_evaluate_reproduces_the_last_evaluation(task, task_runs,
                                                                         tmp_path):
     run_dir, result = task_runs(task)
     assert "done:" in result.stdout and "final μ return" in result.stdout
@@ -30,8 +30,7 @@ def test_train_checkpoints_and_evaluate_reproduces_the_last_evaluation(task, tas
     assert actors["mu"].shape == actors["td3"].shape == actors["elite"].shape
 
     out = tmp_path / "eval.csv"
-    evaluated = run("evaluate", [f"run={run_dir}", f"out={out}"], cache, tmp_path)
+    evaluated = run_here("evaluate", [f"run={run_dir}", f"out={out}"], tmp_path)
     assert evaluated.returncode == 0, evaluated.stderr[-3000:]
-    assert "warp" not in evaluated.stdout + evaluated.stderr
     header, trained = read_csv(run_dir / rundir.EVAL)
     assert read_csv(out) == (header, [{**trained[-1], "": "0"}])
