@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, PGPSConfig, for_task
 from pgps_jax.cli import run_dir as rundir
-from pgps_jax.cli.errors import UsageError, report
+from pgps_jax.cli.errors import EXIT_INTERRUPTED, UsageError, print_error, report
 from pgps_jax.cli.run_config import coerce
 from pgps_jax.experiments.paper.grid import EXPERIMENTS, Cell, cells
 from pgps_jax.experiments.paper.runner import RESULT, Budget, run_cell
@@ -140,7 +140,12 @@ def main(argv=None) -> int:
             progress=not args.no_progress)
         return 0
 
-    return report(body)
+    try:
+        return report(body)
+    except KeyboardInterrupt:
+        print_error("interrupted; the same command continues each cell from its last "
+                    "checkpoint")
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":
