@@ -2,7 +2,7 @@
 
     python -m pgps_jax.experiments.paper figure4                      # 5 tasks × 5 seeds, 1M steps
     python -m pgps_jax.experiments.paper table1 --tasks ant --seeds 10
-    python -m pgps_jax.experiments.paper figure4 --steps 20000 --set pop_size=4 --out /tmp/p
+    python -m pgps_jax.experiments.paper figure4 --steps 20000 --set pop_size=4 --out runs/paper
 
 Results go to `<out>/<experiment>/<task>/<config>/` (`runner`), and the final returns of every
 done cell to `<out>/<experiment>/final_returns.csv`. Run the same command again to continue:
