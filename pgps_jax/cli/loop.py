@@ -39,14 +39,15 @@ class Programs:
     futures: dict[str, Future]
 
     @classmethod
-    def compile(cls, agent: PGPS, key: jax.Array, eval_key: jax.Array, fresh: bool = True,
-                seeds: bool = False, sharding: Optional[jax.sharding.Sharding] = None
+    def compile(cls, agent: PGPS, key: jax.Array, eval_key: jax.Array, seeds: bool = False,
+                sharding: Optional[jax.sharding.Sharding] = None, restored=None
                 ) -> "Programs":
-        """Starts compiling: `init` (unless not `fresh`: a resumed run, whose state comes
-        from a checkpoint) with `play` and `learn` side by side, then `evaluate` in the
-        background. `key`, `eval_key`: as `init` takes them (with a leading seed axis if
-        `seeds`). `sharding`: where every array of the state and of a generation lies (a
-        batch of seeds split over devices); by default on one device."""
+        """Starts compiling: `init` (unless `restored`) with `play` and `learn` side by side,
+        then `evaluate` in the background. `key`, `eval_key`: as `init` takes them (with a
+        leading seed axis if `seeds`). `sharding`: where every array of the state and of a
+        generation lies (a batch of seeds split over devices); by default on one device.
+        `restored`: the shapes of a state restored from a checkpoint (`state_shapes`), for a
+        resumed run, which needs no `init`."""
         batched = jax.vmap if seeds else (lambda fn: fn)
         jit = (jax.jit if sharding is None
                else functools.partial(jax.jit, out_shardings=sharding))
@@ -54,12 +55,11 @@ class Programs:
         play = jit(batched(agent.play), donate_argnums=0)
         learn = jit(batched(agent.learn), donate_argnums=0)
         # A fresh run's init is traced once: `lower` reuses the trace.
-        abstract = (jax.eval_shape(init, key, eval_key) if fresh
-                    else state_shapes(agent, key, eval_key, seeds))
-        abstract = placed(abstract, sharding)
+        abstract = placed(jax.eval_shape(init, key, eval_key) if restored is None
+                          else restored, sharding)
         played = placed(jax.eval_shape(play, abstract), sharding)
         programs = {"play": (play, (abstract,)), "learn": (learn, played)}
-        if fresh:
+        if restored is None:
             programs["init"] = (init, (key, eval_key))
         actors = placed(jax.eval_shape(batched(agent.evaluated_actors), abstract), sharding)
         futures = compile_ahead(programs, later={

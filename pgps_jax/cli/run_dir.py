@@ -93,6 +93,12 @@ def write_atomic(path: pathlib.Path, data: bytes) -> None:
         _write_atomic(path, data)
 
 
+def write_csv(path: pathlib.Path, header: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
+    """A whole CSV file (cells as `cell` writes them), atomically."""
+    lines = [",".join(header)] + [",".join(cell(v) for v in row) for row in rows]
+    write_atomic(path, ("\n".join(lines) + "\n").encode())
+
+
 def _write_atomic(path: pathlib.Path, data: bytes) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:

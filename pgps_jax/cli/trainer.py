@@ -127,10 +127,11 @@ class Trainer:
             self.total = int(state.total_steps)
             self.bar.update(min(self.total, self.run.total_steps))
             return state
-        step, state, meta = self.checkpoints.restore_latest(
-            loop.state_shapes(self.agent, seed_key, eval_key))
+        shapes = loop.state_shapes(self.agent, seed_key, eval_key)
+        step, state, meta = self.checkpoints.restore_latest(shapes)
         if meta["total_steps"] < self.run.total_steps:  # a finished run needs no programs
-            self.programs = loop.Programs.compile(self.agent, seed_key, eval_key, fresh=False)
+            self.programs = loop.Programs.compile(self.agent, seed_key, eval_key,
+                                                  restored=shapes)
         for name, log in self.logs.items():
             log.reopen(meta["logs"][name])
         self.generation, self.total = meta["generation"], meta["total_steps"]

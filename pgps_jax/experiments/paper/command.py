@@ -74,14 +74,11 @@ def write_final_returns(path: pathlib.Path, results: list[dict]) -> None:
     """One row per done cell and seed: the final test return of μ, the TD3 actor and the
     elite."""
     header = ["task", "config", "seed", "env_steps"] + [f"{a}_final" for a in EVALUATED_ACTORS]
-    lines = [",".join(header)]
-    for r in results:
-        for i, seed in enumerate(r["seeds"]):
-            row = [r["task"], r["config"], seed, r["env_steps"][i]]
-            row += [r["final"][a][i] for a in EVALUATED_ACTORS]
-            lines.append(",".join(rundir.cell(v) for v in row))
+    rows = [[r["task"], r["config"], seed, r["env_steps"][i],
+             *(r["final"][a][i] for a in EVALUATED_ACTORS)]
+            for r in results for i, seed in enumerate(r["seeds"])]
     path.parent.mkdir(parents=True, exist_ok=True)
-    rundir.write_atomic(path, ("\n".join(lines) + "\n").encode())
+    rundir.write_csv(path, header, rows)
 
 
 def _assignments(pairs: list[str], what: str, fields: type) -> dict:

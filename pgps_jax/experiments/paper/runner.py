@@ -35,7 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, for_task
-from pgps_jax.agent.metrics import population_return_key, returns_key
+from pgps_jax.agent.metrics import (Metric, generation_metrics, population_return_key,
+                                    returns_key)
 from pgps_jax.agent.pgps import PGPS
 from pgps_jax.cli import loop
 from pgps_jax.cli import run_dir as rundir
@@ -110,16 +111,16 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             generation, elapsed = 0, 0.0
             curves, populations = [[] for _ in range(batch)], [[] for _ in range(batch)]
         else:
-            _require_same(directory, checkpoints.meta(checkpoints.latest_step())["settings"],
-                          settings)
+            _require_same(directory, checkpoints.latest_meta()[1]["settings"], settings)
             shapes = loop.placed(loop.state_shapes(agent, keys, eval_keys, seeds=True),
                                  sharding)
             generation, state, meta = checkpoints.restore_latest(shapes)
             curves, populations = meta["curves"], meta["populations"]
             elapsed = meta["elapsed_s"]
-            programs = loop.Programs.compile(agent, keys, eval_keys, fresh=False, seeds=True,
-                                             sharding=sharding)
+            programs = loop.Programs.compile(agent, keys, eval_keys, seeds=True,
+                                             sharding=sharding, restored=shapes)
         steps = np.asarray(jax.device_get(state.total_steps))
+        population_keys = [m.key for m in _population_metrics(config)]
         while steps[:budget.seeds].min() < budget.steps:
             state, done = loop.generation(programs, state)
             generation += 1
@@ -128,7 +129,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                 curves[seed].append(_evaluation_row(m, seed, int(m["eval/step"][seed])))
             for seed in range(batch):
                 populations[seed].append([generation] + [
-                    np.asarray(m[key][seed]).item() for key in _population_keys(config)])
+                    np.asarray(m[key][seed]).item() for key in population_keys])
             steps = np.asarray(m["gen/total_steps"])
             if generation % budget.checkpoint_every == 0:
                 checkpoints.save(generation, state, {
@@ -180,24 +181,22 @@ def _require_same(directory: pathlib.Path, saved: dict, now: dict) -> None:
                          + "\n  ".join(differ))
 
 
-def _population_keys(config) -> list[str]:
-    """The per-generation metrics of `seed<k>_generations.csv`, after the generation."""
-    return (["gen/total_steps", "gen/episode_limit", "gen/q_filter_active",
-             "td3/in_population"]
-            + [population_return_key(i) for i in range(config.pop_size)])
+def _population_metrics(config) -> list[Metric]:
+    """The per-generation metrics of `seed<k>_generations.csv`, after the generation number:
+    env steps, episode limit, whether the critic chose slots [N/2, N) and the TD3 actor played
+    slot N−1, and the return of every slot (slot 0 the elite; Figure 6 compares the
+    Q-filtered slots with the sampled ones)."""
+    schema = {m.key: m for m in generation_metrics(config.pop_size)}
+    keys = ["gen/total_steps", "gen/episode_limit", "gen/q_filter_active", "td3/in_population",
+            *(population_return_key(i) for i in range(config.pop_size))]
+    return [schema[key] for key in keys]
 
 
 def _write_populations(directory: pathlib.Path, populations: list, config) -> None:
-    """seed<k>_generations.csv of every seed: per generation, its env steps, episode limit,
-    whether the critic chose slots [N/2, N) and the TD3 actor played slot N−1, and the
-    return of every slot (slot 0 the elite; Figure 6 compares the Q-filtered slots with the
-    sampled ones)."""
-    header = ["generation", "env_steps", "T", "q_filter_active", "td3_in_population"] + [
-        f"return_{i}" for i in range(config.pop_size)]
+    """seed<k>_generations.csv of every seed (`_population_metrics`)."""
+    header = ["generation"] + [m.column for m in _population_metrics(config)]
     for seed, rows in enumerate(populations, start=1):
-        lines = [",".join(header)] + [",".join(rundir.cell(v) for v in row) for row in rows]
-        rundir.write_atomic(directory / f"seed{seed}_generations.csv",
-                            ("\n".join(lines) + "\n").encode())
+        rundir.write_csv(directory / f"seed{seed}_generations.csv", header, rows)
 
 
 def _evaluation_row(metrics: dict, seed: int, step: int) -> list:
@@ -212,6 +211,5 @@ def _write_curves(directory: pathlib.Path, curves: list, steps: int) -> None:
     for seed, rows in enumerate(curves, start=1):
         rows = [row for row in rows if row[0] <= steps]
         episodes = len(rows[0]) - 3 if rows else 0
-        lines = [",".join(rundir.eval_columns(episodes))]
-        lines += [",".join(rundir.cell(v) for v in [i, *row]) for i, row in enumerate(rows)]
-        rundir.write_atomic(directory / seed_file(seed), ("\n".join(lines) + "\n").encode())
+        rundir.write_csv(directory / seed_file(seed), rundir.eval_columns(episodes),
+                         [[i, *row] for i, row in enumerate(rows)])
