@@ -87,13 +87,20 @@ def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
     other = dataclasses.replace(BUDGET, overrides=BUDGET.overrides + (("ss1_size", 4),))
     with pytest.raises(UsageError, match="config.ss1_size: 8 there, 4 now"):
         command.run("figure4", out, other, tasks=["hopper"], progress=False)
+    contacts = dataclasses.replace(BUDGET, env=(("iterations", 2),))
+    with pytest.raises(UsageError, match="env: {} there, {'iterations': 2} now"):
+        command.run("figure4", out, contacts, tasks=["hopper"], progress=False)
 
 
 def test_set_reads_values_as_the_training_command_line_does():
     parsed = command._assignments(["resample_before_q_filter=false", "actor_hidden=[16,16]",
-                                   "pop_size=4", "sigma_init=1e-3"], "--set", PGPSConfig)
+                                   "pop_size=4", "sigma_init=1e-3"], "--set",
+                                  command._hints(PGPSConfig))
     assert parsed == {"resample_before_q_filter": False, "actor_hidden": (16, 16),
                       "pop_size": 4, "sigma_init": 1e-3}
+    env = command._assignments(["floor_contacts=every_geom", "iterations=2",
+                                "euler_damping=true"], "--env", command.ENV_FIELDS)
+    assert env == {"floor_contacts": "every_geom", "iterations": 2, "euler_damping": True}
 
 
 def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninterrupted,
@@ -162,6 +169,9 @@ def test_the_grids_hold_the_paper_s_cells():
     (["figure4", "--set", "top_k=99"], ["top_k=99", "pop_size"]),
     (["figure4", "--eval", "often=3"], ["--eval 'often=3'", "every, episodes, steps"]),
     (["figure4", "--steps", "0"], ["--steps must be a positive integer"]),
+    (["figure4", "--env", "contacts=all"], ["--env 'contacts=all'", "floor_contacts"]),
+    (["figure4", "--tasks", "ant", "--env", "floor_contacts=all"],
+     ["--env on ant", "floor_contacts must be one of model, every_geom"]),
 ])
 def test_bad_input_is_one_message_and_status_2(tmp_path, args, words):
     result = run_here("experiments.paper.command", [*args, "--out", str(tmp_path)], tmp_path)

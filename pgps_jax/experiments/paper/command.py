@@ -3,6 +3,8 @@
     python -m pgps_jax.experiments.paper figure4                      # 5 tasks × 5 seeds, 1M steps
     python -m pgps_jax.experiments.paper table1 --tasks ant --seeds 10
     python -m pgps_jax.experiments.paper figure4 --steps 20000 --set pop_size=4 --out runs/paper
+    python -m pgps_jax.experiments.paper figure4 --tasks ant --env floor_contacts=every_geom \
+        --out runs/ant_contacts
 
 Results go to `<out>/<experiment>/<task>/<config>/` (`runner`), and the final returns of every
 done cell to `<out>/<experiment>/final_returns.csv`. Run the same command again to continue:
@@ -24,6 +26,8 @@ from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, PGPSConfig
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import EXIT_INTERRUPTED, UsageError, print_error, report
 from pgps_jax.cli.run_config import coerce
+from pgps_jax.envs import make_env
+from pgps_jax.envs.physics import Physics
 from pgps_jax.experiments.paper.grid import EXPERIMENTS, Cell, cells
 from pgps_jax.experiments.paper.runner import RESULT, Budget, run_cell
 
@@ -52,6 +56,11 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
             config = for_task(cell.task, **dict(cell.overrides), **dict(budget.overrides))
         except ValueError as e:
             raise UsageError(f"{cell.task} {cell.config}: {e}") from None
+        if budget.env:
+            try:
+                make_env(cell.task, **dict(budget.env))
+            except ValueError as e:
+                raise UsageError(f"--env on {cell.task}: {e}") from None
         if budget.steps <= config.warmup_steps:
             raise UsageError(f"--steps {budget.steps} does not exceed the random warm-up "
                              f"(warmup_steps={config.warmup_steps})")
@@ -81,16 +90,20 @@ def write_final_returns(path: pathlib.Path, results: list[dict]) -> None:
     rundir.write_csv(path, header, rows)
 
 
-def _assignments(pairs: list[str], what: str, fields: type) -> dict:
-    """`name=value` pairs as the dataclass `fields`' field types (values read as YAML, as on
-    the training command line: true, 400, [64,64])."""
-    hints = typing.get_type_hints(fields)
+ENV_FIELDS = {"start_pose": str, **typing.get_type_hints(Physics)}
+"""The keyword arguments of `make_env` for a MuJoCo task and their types: the pose reset
+starts from and the `Physics` fields."""
+
+
+def _assignments(pairs: list[str], what: str, hints: dict) -> dict:
+    """`name=value` pairs as the types of `hints` (values read as YAML, as on the training
+    command line: true, 400, [64,64])."""
     values = {}
     for pair in pairs:
         name, sep, text = pair.partition("=")
         if not sep or name not in hints:
-            raise UsageError(f"{what} {pair!r}: expected FIELD=VALUE with FIELD one of "
-                             f"{', '.join(f.name for f in dataclasses.fields(fields))}")
+            raise UsageError(f"{what} {pair!r}: expected NAME=VALUE with NAME one of "
+                             f"{', '.join(hints)}")
         try:
             value = yaml.safe_load(text)
         except yaml.YAMLError:
@@ -102,6 +115,12 @@ def _assignments(pairs: list[str], what: str, fields: type) -> dict:
                 pass
         values[name] = coerce(f"{what} {name}", value, hints[name])
     return values
+
+
+def _hints(fields: type) -> dict:
+    """A dataclass's fields and their types, in their order."""
+    types = typing.get_type_hints(fields)
+    return {f.name: types[f.name] for f in dataclasses.fields(fields)}
 
 
 def main(argv=None) -> int:
@@ -118,6 +137,9 @@ def main(argv=None) -> int:
                         help="PGPSConfig fields replacing every cell's")
     parser.add_argument("--eval", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="EvaluationConfig fields (every, episodes, steps)")
+    parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
+                        help="make_env keyword arguments: start_pose or Physics fields "
+                             "(iterations, floor_contacts, ...)")
     parser.add_argument("--out", type=pathlib.Path, default=OUT)
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -127,12 +149,14 @@ def main(argv=None) -> int:
             if getattr(args, name) <= 0:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer")
         try:
-            evaluation = EvaluationConfig(**_assignments(args.eval, "--eval", EvaluationConfig))
+            evaluation = EvaluationConfig(**_assignments(args.eval, "--eval", _hints(EvaluationConfig)))
         except ValueError as e:
             raise UsageError(str(e)) from None
         budget = Budget(steps=args.steps, seeds=args.seeds, evaluation=evaluation,
                         checkpoint_every=args.checkpoint_every,
-                        overrides=tuple(_assignments(args.set, "--set", PGPSConfig).items()))
+                        overrides=tuple(_assignments(args.set, "--set",
+                                                     _hints(PGPSConfig)).items()),
+                        env=tuple(_assignments(args.env, "--env", ENV_FIELDS).items()))
         run(args.experiment, args.out, budget, args.tasks, args.configs,
             progress=not args.no_progress)
         return 0

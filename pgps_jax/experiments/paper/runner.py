@@ -64,6 +64,8 @@ class Budget:
     """Generations between checkpoints."""
     overrides: tuple = ()
     """(field, value) pairs of PGPSConfig replacing every cell's (e.g. reduced sizes)."""
+    env: tuple = ()
+    """(name, value) keyword arguments of `make_env` for every cell (e.g. physics settings)."""
 
 
 def seed_file(seed: int) -> str:
@@ -95,7 +97,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
         result = json.loads((directory / RESULT).read_text())
         _require_same(directory, result["settings"], settings)
         return result
-    agent = PGPS(config, make_env(cell.task), budget.evaluation)
+    agent = PGPS(config, make_env(cell.task, **dict(budget.env)), budget.evaluation)
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seeds"))
     batch = padded_seeds(budget.seeds, mesh.size)
     numbers = jnp.arange(1, batch + 1)
@@ -165,7 +167,7 @@ def _settings(config, budget: Budget, devices: int) -> dict:
     """What a cell's results depend on (JSON values)."""
     return json.loads(json.dumps({
         "config": dataclasses.asdict(config),
-        "evaluation": dataclasses.asdict(budget.evaluation),
+        "evaluation": dataclasses.asdict(budget.evaluation), "env": dict(budget.env),
         "steps": budget.steps, "seeds": budget.seeds, "devices": devices}))
 
 
