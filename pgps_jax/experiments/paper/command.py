@@ -5,9 +5,11 @@
     python -m pgps_jax.experiments.paper figure4 --steps 20000 --set pop_size=4 --out runs/paper
     python -m pgps_jax.experiments.paper figure4 --tasks ant --env floor_contacts=every_geom \
         --out runs/ant_contacts
+    python -m pgps_jax.experiments.paper figure4 --report         # figures and tables only
 
-Results go to `<out>/<experiment>/<task>/<config>/` (`runner`), and the final returns of every
-done cell to `<out>/<experiment>/final_returns.csv`. Run the same command again to continue:
+Results go to `<out>/<experiment>/<task>/<config>/` (`runner`), the final returns of every
+done cell to `<out>/<experiment>/final_returns.csv`, and the figures and the table of the
+report (`report`) beside it. Run the same command again to continue:
 done cells are skipped and a cut-off cell continues from its last checkpoint.
 """
 
@@ -28,6 +30,7 @@ from pgps_jax.cli.errors import EXIT_INTERRUPTED, UsageError, print_error, repor
 from pgps_jax.cli.run_config import coerce
 from pgps_jax.envs import make_env
 from pgps_jax.envs.physics import Physics
+from pgps_jax.experiments.paper.report import REFERENCE, write_report
 from pgps_jax.experiments.paper.grid import EXPERIMENTS, Cell, cells
 from pgps_jax.experiments.paper.runner import RESULT, Budget, run_cell
 
@@ -40,9 +43,10 @@ def cell_directory(out: pathlib.Path, experiment: str, cell: Cell) -> pathlib.Pa
 
 
 def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=(),
-        progress: bool = True) -> list[dict]:
+        progress: bool = True, reference: pathlib.Path = REFERENCE) -> list[dict]:
     """Runs every cell of `experiment` (those of `tasks` and `configs` where given) and writes
-    the table of final returns; returns the cells' results."""
+    the table of final returns and the report (`reference`: the authors' curves); returns the
+    cells' results."""
     try:
         chosen = cells(experiment, tuple(tasks), tuple(configs))
     except ValueError as e:
@@ -76,6 +80,7 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
     write_final_returns(out / experiment / FINAL_RETURNS,
                         [json.loads(p.read_text())
                          for p in sorted((out / experiment).glob(f"*/*/{RESULT}"))])
+    write_report(experiment, out, reference)
     return results
 
 
@@ -142,14 +147,26 @@ def main(argv=None) -> int:
                              "(iterations, floor_contacts, ...)")
     parser.add_argument("--out", type=pathlib.Path, default=OUT)
     parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--report", action="store_true",
+                        help="only draw the figures and tables from the results under --out")
+    parser.add_argument("--reference", type=pathlib.Path, default=REFERENCE,
+                        help="the authors' published curves, <task>/<seed>.csv")
     args = parser.parse_args(argv)
 
     def body() -> int:
+        if args.report:
+            if args.experiment not in EXPERIMENTS:
+                raise UsageError(f"unknown experiment {args.experiment!r}; valid: "
+                                 f"{', '.join(EXPERIMENTS)}")
+            for path in write_report(args.experiment, args.out, args.reference):
+                print(path)
+            return 0
         for name in ("steps", "seeds", "checkpoint_every"):
             if getattr(args, name) <= 0:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer")
         try:
-            evaluation = EvaluationConfig(**_assignments(args.eval, "--eval", _hints(EvaluationConfig)))
+            evaluation = EvaluationConfig(**_assignments(args.eval, "--eval",
+                                                         _hints(EvaluationConfig)))
         except ValueError as e:
             raise UsageError(str(e)) from None
         budget = Budget(steps=args.steps, seeds=args.seeds, evaluation=evaluation,
@@ -158,7 +175,7 @@ def main(argv=None) -> int:
                                                      _hints(PGPSConfig)).items()),
                         env=tuple(_assignments(args.env, "--env", ENV_FIELDS).items()))
         run(args.experiment, args.out, budget, args.tasks, args.configs,
-            progress=not args.no_progress)
+            progress=not args.no_progress, reference=args.reference)
         return 0
 
     try:

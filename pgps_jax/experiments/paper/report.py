@@ -1,0 +1,167 @@
+"""An experiment's report from its cells' results: μ's learning curves beside the authors'
+published ones, and the final returns with their interquartile mean (IQM) and its 95 %
+stratified-bootstrap confidence interval (Agarwal et al., 2021, "Deep reinforcement learning
+at the edge of the statistical precipice": rliable's `StratifiedBootstrap`, percentile
+interval).
+
+Writes into `<out>/<experiment>/`: `<task>.png` (the test return of μ against env steps, mean ±
+std over the seeds, every configuration run on the task and the paper's PGPS) and
+`final_returns.md` (per task and configuration: the final return of each seed, mean ± std,
+IQM [95 % CI], and the paper's).
+"""
+
+import csv
+import dataclasses
+import json
+import pathlib
+from typing import Optional
+
+import jax
+import numpy as np
+
+from pgps_jax.cli import run_dir as rundir
+from pgps_jax.experiments.paper.grid import cells
+
+REFERENCE = pathlib.Path("benchmarks/reference/pgps_curves")
+"""The authors' published curves: `<task>/<seed>.csv`."""
+GRID_STEP = 10_000
+"""Curves are compared at every multiple of this many env steps."""
+BOOTSTRAP_SAMPLES = 2_000
+BOOTSTRAP_SEED = 0
+"""Every row's bootstrap draws from PRNGKey(BOOTSTRAP_SEED): the same returns, the same
+interval."""
+REPORT = "final_returns.md"
+
+
+@dataclasses.dataclass(frozen=True)
+class Curves:
+    """The test returns of μ of several seeds on one grid of env steps."""
+
+    steps: np.ndarray
+    """[G] multiples of GRID_STEP up to the last that every seed reached."""
+    returns: np.ndarray
+    """[seeds, G]"""
+
+
+def read_curve(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
+    """(Step, Mean) columns of a curve in the authors' format."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    return (np.array([float(r["Step"]) for r in rows]),
+            np.array([float(r["Mean"]) for r in rows]))
+
+
+def on_grid(curves: list[tuple[np.ndarray, np.ndarray]]) -> Curves:
+    """The curves interpolated linearly at every multiple of GRID_STEP that each of them
+    reached (its last evaluation counts for the next GRID_STEP steps)."""
+    reach = min(steps[-1] for steps, _ in curves) + GRID_STEP
+    grid = np.arange(GRID_STEP, reach, GRID_STEP)
+    return Curves(grid, np.stack([np.interp(grid, s, r) for s, r in curves]))
+
+
+def iqm(scores: np.ndarray, axis: int = -1) -> np.ndarray:
+    """The interquartile mean: the mean of the scores left after cutting ⌊n/4⌋ from each end
+    (scipy's `trim_mean(scores, 0.25)`, as rliable computes it)."""
+    n = scores.shape[axis]
+    cut = int(0.25 * n)
+    return np.take(np.sort(scores, axis=axis), np.arange(cut, n - cut), axis=axis).mean(axis)
+
+
+def stratified_bootstrap_ci(scores: list[np.ndarray], key: jax.Array,
+                            samples: int = BOOTSTRAP_SAMPLES, level: float = 0.95
+                            ) -> tuple[float, float]:
+    """Percentile interval of the IQM of the pooled `scores` (one array of runs per task),
+    each task's runs drawn with replacement within the task (stratified)."""
+    keys = jax.random.split(key, len(scores))
+    drawn = [np.asarray(s)[np.asarray(jax.random.randint(k, (samples, len(s)), 0, len(s)))]
+             for s, k in zip(scores, keys)]
+    values = iqm(np.concatenate(drawn, axis=1))
+    tail = (1 - level) / 2 * 100
+    low, high = np.percentile(values, [tail, 100 - tail])
+    return float(low), float(high)
+
+
+@dataclasses.dataclass(frozen=True)
+class Finals:
+    """Final returns of one (task, configuration) over its seeds, with their statistics."""
+
+    source: str
+    seeds: list
+    returns: np.ndarray
+
+    def row(self, key: jax.Array) -> list[str]:
+        r = self.returns
+        low, high = stratified_bootstrap_ci([r], key)
+        std = r.std(ddof=1) if len(r) > 1 else 0.0
+        return [self.source, " ".join(f"{x:,.0f}" for x in r), f"{r.mean():,.0f} ± {std:,.0f}",
+                f"{iqm(r):,.0f} [{low:,.0f}, {high:,.0f}]"]
+
+
+def _ours(directory: pathlib.Path) -> tuple[Optional[Curves], Optional[Finals]]:
+    """A cell's curves (those written so far) and, once it is done, its final returns."""
+    files = sorted(directory.glob("seed*.csv"), key=lambda p: p.name)
+    files = [p for p in files if p.stem[4:].isdigit()]
+    read = [read_curve(p) for p in files]
+    curves = on_grid(read) if read and all(len(s) for s, _ in read) else None
+    result = directory / "result.json"
+    if not result.exists():
+        return curves, None
+    done = json.loads(result.read_text())
+    return curves, Finals(f"ours: {done['config']}", done["seeds"],
+                          np.array(done["final"]["mu"]))
+
+
+def _paper(reference: pathlib.Path, task: str) -> tuple[Optional[Curves], Optional[Finals]]:
+    """The authors' curves of `task` and their last rows (the paper's final returns)."""
+    files = sorted((reference / task).glob("*.csv"), key=lambda p: int(p.stem))
+    if not files:
+        return None, None
+    read = [read_curve(p) for p in files]
+    return on_grid(read), Finals("paper: PGPS", [int(p.stem) for p in files],
+                                 np.array([r[-1] for _, r in read]))
+
+
+def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = REFERENCE
+           ) -> list[pathlib.Path]:
+    """Writes the figures of every task of `experiment` that has results under `out`, and the
+    table of final returns; returns the files written."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    root = out / experiment
+    tasks = list(dict.fromkeys(c.task for c in cells(experiment)))
+    key = jax.random.PRNGKey(BOOTSTRAP_SEED)
+    written, table = [], []
+    for task in tasks:
+        configs = [c.config for c in cells(experiment, (task,))]
+        ours = {config: _ours(root / task / config) for config in configs
+                if (root / task / config).is_dir()}
+        if not ours:
+            continue
+        paper = _paper(reference, task)
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for label, (curves, finals) in [*((f"ours: {c}", v) for c, v in ours.items()),
+                                        ("paper: PGPS", paper)]:
+            if curves is None:
+                continue
+            mean, std = curves.returns.mean(0), curves.returns.std(0)
+            line, = ax.plot(curves.steps, mean, label=f"{label} ({len(curves.returns)} seeds)")
+            ax.fill_between(curves.steps, mean - std, mean + std, alpha=0.2,
+                            color=line.get_color())
+        ax.set(title=task, xlabel="env steps", ylabel="test return of μ (mean ± std)")
+        ax.legend(loc="upper left", fontsize=8)
+        fig.tight_layout()
+        figure = root / f"{task}.png"
+        fig.savefig(figure, dpi=120)
+        plt.close(fig)
+        written.append(figure)
+        for finals in [f for _, f in ours.values()] + [paper[1]]:
+            if finals is not None:
+                table.append([task, *finals.row(key)])
+    header = ["task", "run", "final return per seed", "mean ± std", "IQM [95 % CI]"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(row) + " |" for row in table]
+    path = root / REPORT
+    rundir.write_atomic(path, ("\n".join(lines) + "\n").encode())
+    return written + [path]

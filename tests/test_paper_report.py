@@ -1,0 +1,81 @@
+"""The experiments' report: curves on a common grid, the interquartile mean and its stratified
+bootstrap interval against their definitions, and the figures and table drawn from a results
+folder beside the authors' curves."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+from scipy import stats
+
+from pgps_jax.cli import run_dir as rundir
+from pgps_jax.experiments.paper import report
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 8, 10, 11])
+def test_iqm_is_the_quarter_trimmed_mean(n):
+    scores = np.random.default_rng(n).normal(size=(3, n)) * 100
+    np.testing.assert_allclose(report.iqm(scores), stats.trim_mean(scores, 0.25, axis=1),
+                               rtol=1e-12)
+
+
+def test_the_bootstrap_resamples_within_each_task():
+    # Stratified: every resample holds four runs of each task, so the pooled IQM of four
+    # zeros and four hundreds is always the mean of two of each (an unstratified bootstrap
+    # would vary).
+    tasks = [np.zeros(4), np.full(4, 100.0)]
+    assert report.stratified_bootstrap_ci(tasks, jax.random.PRNGKey(3)) == (50.0, 50.0)
+
+
+def test_the_bootstrap_interval_brackets_the_iqm_and_repeats_under_its_key():
+    scores = [np.array([3000.0, 3500.0, 3600.0, 3700.0, 200.0])]
+    low, high = report.stratified_bootstrap_ci(scores, jax.random.PRNGKey(0))
+    assert low < report.iqm(scores[0]) < high
+    assert 200.0 <= low and high <= 3700.0
+    assert report.stratified_bootstrap_ci(scores, jax.random.PRNGKey(0)) == (low, high)
+
+
+def test_curves_meet_on_the_grid_each_of_them_reached():
+    a = (np.array([10_000.0, 30_000.0, 41_000.0]), np.array([0.0, 20.0, 31.0]))
+    b = (np.array([5_000.0, 25_000.0]), np.array([1.0, 5.0]))
+    curves = report.on_grid([a, b])
+    np.testing.assert_array_equal(curves.steps, [10_000, 20_000, 30_000])  # b: to 25k + 10k
+    np.testing.assert_allclose(curves.returns[0], [0.0, 10.0, 20.0])
+    np.testing.assert_allclose(curves.returns[1], [2.0, 4.0, 5.0])
+
+
+def _curve(path, steps, means):
+    rundir.write_csv(path, rundir.eval_columns(1),
+                     [[i, s, m, 0.0, m] for i, (s, m) in enumerate(zip(steps, means))])
+
+
+def test_the_report_draws_each_run_beside_the_paper_and_tabulates_the_done_ones(tmp_path):
+    out, reference = tmp_path / "results", tmp_path / "reference"
+    steps = [10_000, 20_000, 30_000]
+    done = out / "figure5" / "swimmer" / "pgps"
+    done.mkdir(parents=True)
+    for seed, scale in zip((1, 2, 3), (1.0, 2.0, 4.0)):
+        _curve(done / f"seed{seed}.csv", steps, [10 * scale, 20 * scale, 30 * scale])
+    (done / "result.json").write_text(json.dumps(
+        {"config": "pgps", "seeds": [1, 2, 3], "final": {"mu": [100.0, 250.0, 400.0]}}))
+    running = out / "figure5" / "swimmer" / "without_ea_guidance"  # no result yet
+    running.mkdir()
+    _curve(running / "seed1.csv", steps[:2], [1.0, 2.0])
+    (reference / "swimmer").mkdir(parents=True)
+    for seed, last in ((1, 350.0), (2, 330.0)):
+        _curve(reference / "swimmer" / f"{seed}.csv", steps, [0.0, 100.0, last])
+
+    written = report.write_report("figure5", out, reference)
+
+    figure, table = out / "figure5" / "swimmer.png", out / "figure5" / report.REPORT
+    assert written == [figure, table]
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rows = [line.split(" | ") for line in table.read_text().splitlines()[2:]]
+    ours = np.array([100.0, 250.0, 400.0])
+    low, high = report.stratified_bootstrap_ci([ours], jax.random.PRNGKey(report.BOOTSTRAP_SEED))
+    assert rows[0] == ["| swimmer", "ours: pgps", "100 250 400",
+                       f"250 ± {ours.std(ddof=1):.0f}",
+                       f"250 [{low:,.0f}, {high:,.0f}] |"]
+    assert rows[1][:4] == ["| swimmer", "paper: PGPS", "350 330", "340 ± 14"]
+    assert len(rows) == 2  # the running cell is drawn, not tabulated
