@@ -160,6 +160,7 @@ def test_the_grids_hold_the_paper_s_cells():
 
 @pytest.mark.parametrize("args, words", [
     (["figure7"], ["unknown experiment 'figure7'", "figure4", "table1"]),
+    (["figure7", "--report"], ["unknown experiment 'figure7'", "figure4", "table1"]),
     (["table1", "--tasks", "swimmer"], ["table1 has no task swimmer", "ant", "walker2d"]),
     (["figure4", "--configs", "td3"], ["no configuration td3", "pgps"]),
     (["figure4", "--set", "pop_sise=4"], ["--set 'pop_sise=4'", "pop_size"]),
