@@ -44,17 +44,26 @@ def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrup
     cell = out / "figure4" / "hopper" / "pgps"
     assert result["seeds"] == [1, 2] and min(result["env_steps"]) >= BUDGET.steps
     for seed in (1, 2):
-        header, rows = read_csv(cell / runner.seed_file(seed))
-        assert header == ["", "Step", "Mean", "Std", "Reward1", "Reward2"]
-        steps = [int(r["Step"]) for r in rows]
-        assert steps[0] == 200 and steps == sorted(steps) and steps[-1] <= BUDGET.steps
-        for r in rows:
-            rewards = [float(r["Reward1"]), float(r["Reward2"])]
-            assert float(r["Mean"]) == pytest.approx(np.mean(rewards), rel=1e-6)
-            assert float(r["Std"]) == pytest.approx(np.std(rewards), rel=1e-5, abs=1e-6)
+        curves = {actor: read_csv(cell / runner.seed_file(seed, actor))
+                  for actor in ("mu", "td3", "elite")}
+        assert runner.seed_file(seed) == f"seed{seed}.csv"
+        for header, rows in curves.values():
+            assert header == ["", "Step", "Mean", "Std", "Reward1", "Reward2"]
+            steps = [int(r["Step"]) for r in rows]
+            assert steps[0] == 200 and steps == sorted(steps) and steps[-1] <= BUDGET.steps
+            for r in rows:
+                rewards = [float(r["Reward1"]), float(r["Reward2"])]
+                assert float(r["Mean"]) == pytest.approx(np.mean(rewards), rel=1e-6)
+                assert float(r["Std"]) == pytest.approx(np.std(rewards), rel=1e-5, abs=1e-6)
+        assert [r["Step"] for r in curves["td3"][1]] == [r["Step"] for r in curves["mu"][1]]
+        assert [r["Mean"] for r in curves["td3"][1]] != [r["Mean"] for r in curves["mu"][1]]
         header, rows = read_csv(cell / f"seed{seed}_generations.csv")
         assert header == ["generation", "env_steps", "T", "q_filter_active",
-                          "td3_in_population", "return_0", "return_1"]
+                          "td3_in_population", "return_0", "return_1", "elite_return",
+                          "td3_return", "guided_loss", "beta", "cem_var_mean", "cem_damping"]
+        for r in rows:  # the generation's elite is its best return
+            assert float(r["elite_return"]) == pytest.approx(
+                max(float(r["return_0"]), float(r["return_1"])), rel=1e-6)
         assert [int(r["generation"]) for r in rows] == list(range(1, result["generations"] + 1))
         began = [TINY["warmup_steps"]] + [int(r["env_steps"]) for r in rows[:-1]]
         assert [int(r["q_filter_active"]) for r in rows] == [
@@ -120,7 +129,8 @@ def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninter
     assert generations[0] == 3  # from the checkpoint of generation 2
     assert {**resumed, "wall_s": 0} == {**result, "wall_s": 0}
     for seed in (1, 2):
-        for name in (runner.seed_file(seed), f"seed{seed}_generations.csv"):
+        for name in (runner.seed_file(seed), runner.seed_file(seed, "td3"),
+                     f"seed{seed}_generations.csv"):
             assert ((directory / name).read_bytes()
                     == (out / "figure4" / "hopper" / "pgps" / name).read_bytes())
 
@@ -140,7 +150,8 @@ def test_seeds_are_split_over_the_devices(tmp_path):
     assert cell["device"].startswith("2 × ") and cell["seeds"] == [1, 2, 3]
     assert len(cell["final"]["mu"]) == 3 and np.all(np.isfinite(cell["final"]["mu"]))
     assert sorted(p.name for p in (tmp_path / "figure4" / "hopper" / "pgps").glob("*.csv")) == [
-        f"seed{k}{kind}.csv" for k in (1, 2, 3) for kind in ("", "_generations")]
+        f"seed{k}{kind}.csv" for k in (1, 2, 3)
+        for kind in ("", "_elite", "_generations", "_td3")]
 
 
 def test_padding_rounds_the_batch_up_to_the_devices():

@@ -53,29 +53,69 @@ def _curve(path, steps, means):
 def test_the_report_draws_each_run_beside_the_paper_and_tabulates_the_done_ones(tmp_path):
     out, reference = tmp_path / "results", tmp_path / "reference"
     steps = [10_000, 20_000, 30_000]
-    done = out / "figure5" / "swimmer" / "pgps"
+    done = out / "table1" / "ant" / "pgps"
     done.mkdir(parents=True)
     for seed, scale in zip((1, 2, 3), (1.0, 2.0, 4.0)):
         _curve(done / f"seed{seed}.csv", steps, [10 * scale, 20 * scale, 30 * scale])
     (done / "result.json").write_text(json.dumps(
         {"config": "pgps", "seeds": [1, 2, 3], "final": {"mu": [100.0, 250.0, 400.0]}}))
-    running = out / "figure5" / "swimmer" / "without_ea_guidance"  # no result yet
+    running = out / "table1" / "ant" / "base"  # no result yet
     running.mkdir()
     _curve(running / "seed1.csv", steps[:2], [1.0, 2.0])
-    (reference / "swimmer").mkdir(parents=True)
+    (reference / "ant").mkdir(parents=True)
     for seed, last in ((1, 350.0), (2, 330.0)):
-        _curve(reference / "swimmer" / f"{seed}.csv", steps, [0.0, 100.0, last])
+        _curve(reference / "ant" / f"{seed}.csv", steps, [0.0, 100.0, last])
 
-    written = report.write_report("figure5", out, reference)
+    written = report.write_report("table1", out, reference)
 
-    figure, table = out / "figure5" / "swimmer.png", out / "figure5" / report.REPORT
+    figure, table = out / "table1" / "ant.png", out / "table1" / report.REPORT
     assert written == [figure, table]
     assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rows = [line.split(" | ") for line in table.read_text().splitlines()[2:]]
     ours = np.array([100.0, 250.0, 400.0])
     low, high = report.stratified_bootstrap_ci([ours], jax.random.PRNGKey(report.BOOTSTRAP_SEED))
-    assert rows[0] == ["| swimmer", "ours: pgps", "100 250 400",
+    assert rows[0] == ["| ant", "ours: pgps", "100 250 400",
                        f"250 ± {ours.std(ddof=1):.0f}",
                        f"250 [{low:,.0f}, {high:,.0f}] |"]
-    assert rows[1][:4] == ["| swimmer", "paper: PGPS", "350 330", "340 ± 14"]
+    assert rows[1][:4] == ["| ant", "paper: PGPS", "350 330", "340 ± 14"]
     assert len(rows) == 2  # the running cell is drawn, not tabulated
+
+
+def test_figure5_reports_the_td3_actor_without_the_paper_s_mu(tmp_path):
+    out, reference = tmp_path / "results", tmp_path / "reference"
+    cell = out / "figure5" / "swimmer" / "without_ea_guidance"
+    cell.mkdir(parents=True)
+    _curve(cell / "seed1.csv", [10_000, 20_000], [5.0, 6.0])
+    _curve(cell / "seed1_td3.csv", [10_000, 20_000], [50.0, 60.0])
+    (cell / "result.json").write_text(json.dumps(
+        {"config": "without_ea_guidance", "seeds": [1],
+         "final": {"mu": [6.0], "td3": [61.0], "elite": [7.0]}}))
+    (reference / "swimmer").mkdir(parents=True)
+    _curve(reference / "swimmer" / "1.csv", [10_000, 20_000], [0.0, 300.0])
+
+    report.write_report("figure5", out, reference)
+
+    rows = (out / "figure5" / report.REPORT).read_text().splitlines()[2:]
+    assert rows == ["| swimmer | ours: without_ea_guidance | 61 | 61 ± 0 | 61 [61, 61] |"]
+
+
+def test_figure6_compares_the_q_filtered_actors_with_the_sampled_ones(tmp_path):
+    cell = tmp_path / "results" / "figure6" / "halfcheetah" / "pgps"
+    cell.mkdir(parents=True)
+    header = ["generation", "env_steps", "q_filter_active", "td3_in_population",
+              "return_0", "return_1", "return_2", "return_3"]
+    rundir.write_csv(cell / "seed1_generations.csv", header, [
+        [1, 5_000, 0, 1, 9.0, 9.0, 9.0, 9.0],      # before Q-filtering: left out
+        [2, 12_000, 1, 1, 100.0, 10.0, 30.0, 70.0],  # slot 3 is the TD3 actor's
+        [3, 15_000, 1, 0, 100.0, 20.0, 40.0, 60.0]])
+    steps, filtered, sampled = report.filtered_and_sampled(cell / "seed1_generations.csv")
+    np.testing.assert_array_equal(steps, [12_000, 15_000])
+    np.testing.assert_array_equal(filtered, [30.0, 50.0])
+    np.testing.assert_array_equal(sampled, [10.0, 20.0])
+    _curve(cell / "seed1.csv", [10_000, 20_000], [1.0, 2.0])
+
+    written = report.write_report("figure6", tmp_path / "results", tmp_path / "none")
+
+    assert tmp_path / "results" / "figure6" / "halfcheetah_q_filter.png" in written
+    assert (tmp_path / "results" / "figure6" / "halfcheetah_q_filter.png").read_bytes()[:4] \
+        == b"\x89PNG"

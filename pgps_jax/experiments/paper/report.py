@@ -5,9 +5,11 @@ at the edge of the statistical precipice": rliable's `StratifiedBootstrap`, perc
 interval).
 
 Writes into `<out>/<experiment>/`: `<task>.png` (the test return of μ against env steps, mean ±
-std over the seeds, every configuration run on the task and the paper's PGPS) and
-`final_returns.md` (per task and configuration: the final return of each seed, mean ± std,
-IQM [95 % CI], and the paper's).
+std over the seeds, every configuration run on the task and the paper's PGPS; of the TD3 actor
+in `figure5`, as the paper's Figure 5), `final_returns.md` (per task and configuration: the
+final return of each seed, mean ± std, IQM [95 % CI], and the paper's) and, for `figure6`,
+`<task>_q_filter.png` (Figure 6: per 10k env steps, the mean return of the Q-filtered actors
+and of the randomly sampled ones).
 """
 
 import csv
@@ -21,6 +23,7 @@ import numpy as np
 
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.experiments.paper.grid import cells
+from pgps_jax.experiments.paper.runner import seed_file
 
 REFERENCE = pathlib.Path("benchmarks/reference/pgps_curves")
 """The authors' published curves: `<task>/<seed>.csv`."""
@@ -31,6 +34,9 @@ BOOTSTRAP_SEED = 0
 """Every row's bootstrap draws from PRNGKey(BOOTSTRAP_SEED): the same returns, the same
 interval."""
 REPORT = "final_returns.md"
+REPORTED_ACTOR = {"figure5": "td3"}
+"""The actor whose curves and final returns an experiment reports (μ where not named)."""
+ACTOR_NAMES = {"mu": "μ", "td3": "the TD3 actor", "elite": "the elite"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,18 +103,25 @@ class Finals:
                 f"{iqm(r):,.0f} [{low:,.0f}, {high:,.0f}]"]
 
 
-def _ours(directory: pathlib.Path) -> tuple[Optional[Curves], Optional[Finals]]:
-    """A cell's curves (those written so far) and, once it is done, its final returns."""
-    files = sorted(directory.glob("seed*.csv"), key=lambda p: p.name)
-    files = [p for p in files if p.stem[4:].isdigit()]
-    read = [read_curve(p) for p in files]
+def _seed_files(directory: pathlib.Path, actor: str) -> list[pathlib.Path]:
+    """The curves of `actor` in a cell's folder, in the order of their seeds."""
+    seeds = sorted(int(p.stem[4:]) for p in directory.glob("seed*.csv") if p.stem[4:].isdigit())
+    return [directory / seed_file(seed, actor) for seed in seeds
+            if (directory / seed_file(seed, actor)).exists()]
+
+
+def _ours(directory: pathlib.Path, actor: str = "mu"
+          ) -> tuple[Optional[Curves], Optional[Finals]]:
+    """A cell's curves of `actor` (those written so far) and, once it is done, its final
+    returns."""
+    read = [read_curve(p) for p in _seed_files(directory, actor)]
     curves = on_grid(read) if read and all(len(s) for s, _ in read) else None
     result = directory / "result.json"
     if not result.exists():
         return curves, None
     done = json.loads(result.read_text())
     return curves, Finals(f"ours: {done['config']}", done["seeds"],
-                          np.array(done["final"]["mu"]))
+                          np.array(done["final"][actor]))
 
 
 def _paper(reference: pathlib.Path, task: str) -> tuple[Optional[Curves], Optional[Finals]]:
@@ -130,16 +143,17 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
     import matplotlib.pyplot as plt
 
     root = out / experiment
+    actor = REPORTED_ACTOR.get(experiment, "mu")
     tasks = list(dict.fromkeys(c.task for c in cells(experiment)))
     key = jax.random.PRNGKey(BOOTSTRAP_SEED)
     written, table = [], []
     for task in tasks:
         configs = [c.config for c in cells(experiment, (task,))]
-        ours = {config: _ours(root / task / config) for config in configs
+        ours = {config: _ours(root / task / config, actor) for config in configs
                 if (root / task / config).is_dir()}
         if not ours:
             continue
-        paper = _paper(reference, task)
+        paper = _paper(reference, task) if actor == "mu" else (None, None)
         fig, ax = plt.subplots(figsize=(6, 4))
         for label, (curves, finals) in [*((f"ours: {c}", v) for c, v in ours.items()),
                                         ("paper: PGPS", paper)]:
@@ -149,7 +163,8 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
             line, = ax.plot(curves.steps, mean, label=f"{label} ({len(curves.returns)} seeds)")
             ax.fill_between(curves.steps, mean - std, mean + std, alpha=0.2,
                             color=line.get_color())
-        ax.set(title=task, xlabel="env steps", ylabel="test return of μ (mean ± std)")
+        ax.set(title=task, xlabel="env steps",
+               ylabel=f"test return of {ACTOR_NAMES[actor]} (mean ± std)")
         ax.legend(loc="upper left", fontsize=8)
         fig.tight_layout()
         figure = root / f"{task}.png"
@@ -159,9 +174,57 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
         for finals in [f for _, f in ours.values()] + [paper[1]]:
             if finals is not None:
                 table.append([task, *finals.row(key)])
+        if experiment == "figure6":
+            written += [_draw_q_filter(root / task / config, root / f"{task}_q_filter.png",
+                                       task, plt) for config in ours]
     header = ["task", "run", "final return per seed", "mean ± std", "IQM [95 % CI]"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(row) + " |" for row in table]
     path = root / REPORT
     rundir.write_atomic(path, ("\n".join(lines) + "\n").encode())
     return written + [path]
+
+
+def filtered_and_sampled(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """From a `seed<k>_generations.csv`, the generations in which the critic chose actors:
+    (env steps, mean return of the Q-filtered slots [N/2, N) (the TD3 actor's slot N−1
+    left out where it played), mean return of the sampled slots [1, N/2))."""
+    with open(path, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if float(r["q_filter_active"])]
+    n = sum(1 for column in (rows[0] if rows else {}) if column.startswith("return_"))
+    steps, filtered, sampled = [], [], []
+    for r in rows:
+        returns = [float(r[f"return_{i}"]) for i in range(n)]
+        chosen = returns[n // 2:n - 1] if float(r["td3_in_population"]) else returns[n // 2:]
+        steps.append(float(r["env_steps"]))
+        filtered.append(np.mean(chosen))
+        sampled.append(np.mean(returns[1:n // 2]))
+    return np.array(steps), np.array(filtered), np.array(sampled)
+
+
+def _draw_q_filter(directory: pathlib.Path, figure: pathlib.Path, task: str, plt
+                   ) -> pathlib.Path:
+    """Figure 6: the mean return of the Q-filtered and of the sampled actors per GRID_STEP env
+    steps, averaged over the seeds."""
+    fig, ax = plt.subplots(figsize=(6, 4))
+    per_seed = [filtered_and_sampled(p) for p in sorted(directory.glob("seed*_generations.csv"))]
+    per_seed = [s for s in per_seed if len(s[0])]
+    if per_seed:
+        end = min(steps[-1] for steps, _, _ in per_seed)
+        edges = np.arange(0, end + GRID_STEP, GRID_STEP)
+        for column, label in ((1, "Q-filtered actors"), (2, "randomly sampled actors")):
+            binned = []
+            for data in per_seed:
+                bins = np.digitize(data[0], edges)
+                binned.append([data[column][bins == b].mean() if np.any(bins == b) else np.nan
+                               for b in range(1, len(edges))])
+            binned = np.array(binned)
+            seen = ~np.all(np.isnan(binned), axis=0)
+            ax.plot(edges[1:][seen], np.nanmean(binned[:, seen], axis=0), label=label)
+    ax.set(title=f"{task}: actors of the population", xlabel="env steps",
+           ylabel=f"mean return per {GRID_STEP:,} steps")
+    ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(figure, dpi=120)
+    plt.close(fig)
+    return figure

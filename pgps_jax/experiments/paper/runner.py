@@ -14,7 +14,8 @@ generations past it: their curves keep the evaluations that began within the bud
 
 A cell's folder holds, per seed, `seed<k>.csv`: its test evaluations up to the budget in the
 authors' format (Step, Mean, Std, Reward1..RewardE of μ: the columns of a training run's
-`eval.csv`) and
+`eval.csv`), the same of the TD3 actor and of the elite in `seed<k>_td3.csv` and
+`seed<k>_elite.csv` (Figure 5), and
 `seed<k>_generations.csv`: per generation, the return of every slot of the population (Figure
 6: the Q-filtered slots against the sampled ones); `result.json` once
 the cell is done (the final evaluation of μ, the TD3 actor and the elite on fresh start states
@@ -68,8 +69,10 @@ class Budget:
     """(name, value) keyword arguments of `make_env` for every cell (e.g. physics settings)."""
 
 
-def seed_file(seed: int) -> str:
-    return f"seed{seed}.csv"
+def seed_file(seed: int, actor: str = "mu") -> str:
+    """The curve of `actor` (one of EVALUATED_ACTORS) of seed `seed`: μ's in `seed<k>.csv`, the
+    others' in `seed<k>_<actor>.csv`."""
+    return f"seed{seed}.csv" if actor == "mu" else f"seed{seed}_{actor}.csv"
 
 
 def seed_mesh() -> jax.sharding.Mesh:
@@ -111,7 +114,8 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                                              sharding=sharding)
             state = programs["init"](keys, eval_keys)
             generation, elapsed = 0, 0.0
-            curves, populations = [[] for _ in range(batch)], [[] for _ in range(batch)]
+            curves = {actor: [[] for _ in range(batch)] for actor in EVALUATED_ACTORS}
+            populations = [[] for _ in range(batch)]
         else:
             _require_same(directory, checkpoints.latest_meta()[1]["settings"], settings)
             shapes = loop.placed(loop.state_shapes(agent, keys, eval_keys, seeds=True),
@@ -128,7 +132,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             generation += 1
             m = done.metrics
             for seed in np.flatnonzero(m["eval/done"]):
-                curves[seed].append(_evaluation_row(m, seed, int(m["eval/step"][seed])))
+                _add_evaluation(curves, m, seed, int(m["eval/step"][seed]))
             for seed in range(batch):
                 populations[seed].append([generation] + [
                     np.asarray(m[key][seed]).item() for key in population_keys])
@@ -137,7 +141,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                 checkpoints.save(generation, state, {
                     "settings": settings, "curves": curves, "populations": populations,
                     "elapsed_s": elapsed + time.perf_counter() - start})
-                _write_curves(directory, curves[:budget.seeds], budget.steps)
+                _write_curves(directory, curves, budget)
                 _write_populations(directory, populations[:budget.seeds], config)
             if on_generation is not None:
                 on_generation(generation, steps[:budget.seeds])
@@ -147,9 +151,8 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     finally:
         checkpoints.close()
     for seed in np.flatnonzero(finished.unfinished_active):  # played from its start
-        curves[seed].append(_evaluation_row(finished.unfinished, seed,
-                                            int(finished.unfinished_step[seed])))
-    _write_curves(directory, curves[:budget.seeds], budget.steps)
+        _add_evaluation(curves, finished.unfinished, seed, int(finished.unfinished_step[seed]))
+    _write_curves(directory, curves, budget)
     _write_populations(directory, populations[:budget.seeds], config)
     result = {"task": cell.task, "config": cell.config, "overrides": dict(cell.overrides),
               "steps": budget.steps, "seeds": list(range(1, budget.seeds + 1)),
@@ -186,11 +189,14 @@ def _require_same(directory: pathlib.Path, saved: dict, now: dict) -> None:
 def _population_metrics(config) -> list[Metric]:
     """The per-generation metrics of `seed<k>_generations.csv`, after the generation number:
     env steps, episode limit, whether the critic chose slots [N/2, N) and the TD3 actor played
-    slot N−1, and the return of every slot (slot 0 the elite; Figure 6 compares the
-    Q-filtered slots with the sampled ones)."""
+    slot N−1, the return of every slot (slot 0 the elite; Figure 6 compares the Q-filtered
+    slots with the sampled ones), and what shapes the next population: the generation's
+    elite and TD3 returns, the guided loss and β (eq. 3), Σ's mean and damping."""
     schema = {m.key: m for m in generation_metrics(config.pop_size)}
     keys = ["gen/total_steps", "gen/episode_limit", "gen/q_filter_active", "td3/in_population",
-            *(population_return_key(i) for i in range(config.pop_size))]
+            *(population_return_key(i) for i in range(config.pop_size)),
+            "cem/elite_return", "td3/return", "td3/guided_loss", "td3/beta", "cem/var_mean",
+            "cem/damping"]
     return [schema[key] for key in keys]
 
 
@@ -201,17 +207,21 @@ def _write_populations(directory: pathlib.Path, populations: list, config) -> No
         rundir.write_csv(directory / f"seed{seed}_generations.csv", header, rows)
 
 
-def _evaluation_row(metrics: dict, seed: int, step: int) -> list:
-    """Step, mean, std and the test returns of seed `seed`'s μ."""
-    returns = np.asarray(metrics[returns_key("mu")][seed])
-    return [step, float(returns.mean()), float(returns.std()), *map(float, returns)]
+def _add_evaluation(curves: dict, metrics: dict, seed: int, step: int) -> None:
+    """Appends seed `seed`'s evaluation to each actor's curve: step, mean, std and the test
+    returns."""
+    for actor, rows in curves.items():
+        returns = np.asarray(metrics[returns_key(actor)][seed])
+        rows[seed].append([step, float(returns.mean()), float(returns.std()),
+                           *map(float, returns)])
 
 
-def _write_curves(directory: pathlib.Path, curves: list, steps: int) -> None:
-    """seed<k>.csv of every seed: its evaluations so far, up to `steps`, in the authors'
-    format."""
-    for seed, rows in enumerate(curves, start=1):
-        rows = [row for row in rows if row[0] <= steps]
-        episodes = len(rows[0]) - 3 if rows else 0
-        rundir.write_csv(directory / seed_file(seed), rundir.eval_columns(episodes),
-                         [[i, *row] for i, row in enumerate(rows)])
+def _write_curves(directory: pathlib.Path, curves: dict, budget: Budget) -> None:
+    """The curve of every actor and seed (`seed_file`): its evaluations so far, up to the
+    budget, in the authors' format."""
+    for actor, per_seed in curves.items():
+        for seed, rows in enumerate(per_seed[:budget.seeds], start=1):
+            rows = [row for row in rows if row[0] <= budget.steps]
+            episodes = len(rows[0]) - 3 if rows else 0
+            rundir.write_csv(directory / seed_file(seed, actor), rundir.eval_columns(episodes),
+                             [[i, *row] for i, row in enumerate(rows)])
