@@ -99,6 +99,9 @@ def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
     contacts = dataclasses.replace(BUDGET, env=(("iterations", 2),))
     with pytest.raises(UsageError, match="env: {} there, {'iterations': 2} now"):
         command.run("figure4", out, contacts, tasks=["hopper"], progress=False)
+    result = json.loads((out / "figure4" / "hopper" / "pgps" / runner.RESULT).read_text())
+    before_env = {k: v for k, v in result["settings"].items() if k != "env"}
+    runner._require_same(out, before_env, result["settings"])  # a cell from before --env
 
 
 def test_set_reads_values_as_the_training_command_line_does():
@@ -130,7 +133,7 @@ def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninter
     assert {**resumed, "wall_s": 0} == {**result, "wall_s": 0}
     for seed in (1, 2):
         for name in (runner.seed_file(seed), runner.seed_file(seed, "td3"),
-                     f"seed{seed}_generations.csv"):
+                     runner.seed_file(seed, "elite"), f"seed{seed}_generations.csv"):
             assert ((directory / name).read_bytes()
                     == (out / "figure4" / "hopper" / "pgps" / name).read_bytes())
 
@@ -172,6 +175,7 @@ def test_the_grids_hold_the_paper_s_cells():
 @pytest.mark.parametrize("args, words", [
     (["figure7"], ["unknown experiment 'figure7'", "figure4", "table1"]),
     (["figure7", "--report"], ["unknown experiment 'figure7'", "figure4", "table1"]),
+    (["figure4", "--report", "--reference", "nowhere"], ["--reference nowhere: no such folder"]),
     (["table1", "--tasks", "swimmer"], ["table1 has no task swimmer", "ant", "walker2d"]),
     (["figure4", "--configs", "td3"], ["no configuration td3", "pgps"]),
     (["figure4", "--set", "pop_sise=4"], ["--set 'pop_sise=4'", "pop_size"]),

@@ -58,7 +58,8 @@ def test_the_report_draws_each_run_beside_the_paper_and_tabulates_the_done_ones(
     for seed, scale in zip((1, 2, 3), (1.0, 2.0, 4.0)):
         _curve(done / f"seed{seed}.csv", steps, [10 * scale, 20 * scale, 30 * scale])
     (done / "result.json").write_text(json.dumps(
-        {"config": "pgps", "seeds": [1, 2, 3], "final": {"mu": [100.0, 250.0, 400.0]}}))
+        {"config": "pgps", "seeds": [1, 2, 3], "steps": 30_000,
+         "final": {"mu": [100.0, 250.0, 400.0]}}))
     running = out / "table1" / "ant" / "base"  # no result yet
     running.mkdir()
     _curve(running / "seed1.csv", steps[:2], [1.0, 2.0])
@@ -74,11 +75,13 @@ def test_the_report_draws_each_run_beside_the_paper_and_tabulates_the_done_ones(
     rows = [line.split(" | ") for line in table.read_text().splitlines()[2:]]
     ours = np.array([100.0, 250.0, 400.0])
     low, high = report.stratified_bootstrap_ci([ours], jax.random.PRNGKey(report.BOOTSTRAP_SEED))
-    assert rows[0] == ["| ant", "ours: pgps", "100 250 400",
+    assert rows[0] == ["| ant", "ours: pgps", "30,000", "100 250 400",
                        f"250 ± {ours.std(ddof=1):.0f}",
                        f"250 [{low:,.0f}, {high:,.0f}] |"]
-    assert rows[1][:4] == ["| ant", "paper: PGPS", "350 330", "340 ± 14"]
+    assert rows[1][:5] == ["| ant", "paper: PGPS", "30,000", "350 330", "340 ± 14"]
     assert len(rows) == 2  # the running cell is drawn, not tabulated
+    curves, finals = report._ours(running)
+    assert finals is None and curves.returns.tolist() == [[1.0, 2.0]]
 
 
 def test_figure5_reports_the_td3_actor_without_the_paper_s_mu(tmp_path):
@@ -88,7 +91,7 @@ def test_figure5_reports_the_td3_actor_without_the_paper_s_mu(tmp_path):
     _curve(cell / "seed1.csv", [10_000, 20_000], [5.0, 6.0])
     _curve(cell / "seed1_td3.csv", [10_000, 20_000], [50.0, 60.0])
     (cell / "result.json").write_text(json.dumps(
-        {"config": "without_ea_guidance", "seeds": [1],
+        {"config": "without_ea_guidance", "seeds": [1], "steps": 20_000,
          "final": {"mu": [6.0], "td3": [61.0], "elite": [7.0]}}))
     (reference / "swimmer").mkdir(parents=True)
     _curve(reference / "swimmer" / "1.csv", [10_000, 20_000], [0.0, 300.0])
@@ -96,7 +99,9 @@ def test_figure5_reports_the_td3_actor_without_the_paper_s_mu(tmp_path):
     report.write_report("figure5", out, reference)
 
     rows = (out / "figure5" / report.REPORT).read_text().splitlines()[2:]
-    assert rows == ["| swimmer | ours: without_ea_guidance | 61 | 61 ± 0 | 61 [61, 61] |"]
+    assert rows == ["| swimmer | ours: without_ea_guidance | 20,000 | 61 | 61 ± 0 | 61 [61, 61] |"]
+    curves, _ = report._ours(cell, "td3")
+    assert curves.returns.tolist() == [[50.0, 60.0]]
 
 
 def test_figure6_compares_the_q_filtered_actors_with_the_sampled_ones(tmp_path):
@@ -116,6 +121,21 @@ def test_figure6_compares_the_q_filtered_actors_with_the_sampled_ones(tmp_path):
 
     written = report.write_report("figure6", tmp_path / "results", tmp_path / "none")
 
-    assert tmp_path / "results" / "figure6" / "halfcheetah_q_filter.png" in written
-    assert (tmp_path / "results" / "figure6" / "halfcheetah_q_filter.png").read_bytes()[:4] \
-        == b"\x89PNG"
+    figure = tmp_path / "results" / "figure6" / "halfcheetah_pgps_q_filter.png"
+    assert figure in written and figure.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_binned_means_average_each_finished_span_then_the_seeds():
+    a = (np.array([5_000.0, 10_000.0, 15_000.0, 21_000.0, 30_000.0]),
+         np.array([1.0, 2.0, 4.0, 8.0, 100.0]))
+    b = (np.array([12_000.0, 25_000.0]), np.array([10.0, np.nan]))
+    ends, means = report.binned_means([a, b])
+    # spans [0, 10k) and [10k, 20k) are finished by both (b's last point lies in [20k, 30k));
+    # b has no value in the first; a's [10k, 20k) mean is 3
+    np.testing.assert_array_equal(ends, [10_000, 20_000])
+    np.testing.assert_allclose(means, [1.0, (3.0 + 10.0) / 2])
+
+
+def test_no_results_is_a_usage_error(tmp_path):
+    with pytest.raises(report.UsageError, match="no results of figure4 under"):
+        report.write_report("figure4", tmp_path, tmp_path)

@@ -30,8 +30,8 @@ from pgps_jax.cli.errors import EXIT_INTERRUPTED, UsageError, print_error, repor
 from pgps_jax.cli.run_config import coerce
 from pgps_jax.envs import make_env
 from pgps_jax.envs.physics import Physics
-from pgps_jax.experiments.paper.report import REFERENCE, write_report
 from pgps_jax.experiments.paper.grid import EXPERIMENTS, Cell, cells
+from pgps_jax.experiments.paper.report import REFERENCE, write_report
 from pgps_jax.experiments.paper.runner import RESULT, Budget, run_cell
 
 OUT = pathlib.Path("benchmarks/results/paper")
@@ -51,6 +51,12 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
         chosen = cells(experiment, tuple(tasks), tuple(configs))
     except ValueError as e:
         raise UsageError(str(e)) from None
+    for task in dict.fromkeys(cell.task for cell in chosen):
+        if budget.env:
+            try:
+                make_env(task, **dict(budget.env))
+            except ValueError as e:
+                raise UsageError(f"--env on {task}: {e}") from None
     for cell in chosen:  # every configuration is valid before any cell runs
         clash = sorted(set(cell.overrides) & set(dict(budget.overrides)))
         if clash:
@@ -60,14 +66,10 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
             config = for_task(cell.task, **dict(cell.overrides), **dict(budget.overrides))
         except ValueError as e:
             raise UsageError(f"{cell.task} {cell.config}: {e}") from None
-        if budget.env:
-            try:
-                make_env(cell.task, **dict(budget.env))
-            except ValueError as e:
-                raise UsageError(f"--env on {cell.task}: {e}") from None
         if budget.steps <= config.warmup_steps:
             raise UsageError(f"--steps {budget.steps} does not exceed the random warm-up "
                              f"(warmup_steps={config.warmup_steps})")
+    require_reference(reference)
     results = []
     for cell in chosen:
         with tqdm(total=budget.steps * budget.seeds, unit="step", unit_scale=True,
@@ -82,6 +84,13 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
                          for p in sorted((out / experiment).glob(f"*/*/{RESULT}"))])
     write_report(experiment, out, reference)
     return results
+
+
+def require_reference(reference: pathlib.Path) -> None:
+    """UsageError unless the folder of the authors' curves exists."""
+    if not reference.is_dir():
+        raise UsageError(f"--reference {reference}: no such folder (the authors' curves, "
+                         "<task>/<seed>.csv; run from the repository's root or name it)")
 
 
 def write_final_returns(path: pathlib.Path, results: list[dict]) -> None:
@@ -158,6 +167,7 @@ def main(argv=None) -> int:
             if args.experiment not in EXPERIMENTS:
                 raise UsageError(f"unknown experiment {args.experiment!r}; valid: "
                                  f"{', '.join(EXPERIMENTS)}")
+            require_reference(args.reference)
             for path in write_report(args.experiment, args.out, args.reference):
                 print(path)
             return 0

@@ -7,7 +7,8 @@ interval).
 Writes into `<out>/<experiment>/`: `<task>.png` (the test return of μ against env steps, mean ±
 std over the seeds, every configuration run on the task and the paper's PGPS; of the TD3 actor
 in `figure5`, as the paper's Figure 5), `final_returns.md` (per task and configuration: the
-final return of each seed, mean ± std, IQM [95 % CI], and the paper's) and, for `figure6`,
+env steps, the final return of each seed, mean ± std, IQM [95 % CI], and the paper's); std is
+the sample std over seeds throughout and, for `figure6`,
 `<task>_q_filter.png` (Figure 6: per 10k env steps, the mean return of the Q-filtered actors
 and of the randomly sampled ones).
 """
@@ -22,6 +23,7 @@ import jax
 import numpy as np
 
 from pgps_jax.cli import run_dir as rundir
+from pgps_jax.cli.errors import UsageError
 from pgps_jax.experiments.paper.grid import cells
 from pgps_jax.experiments.paper.runner import seed_file
 
@@ -36,12 +38,12 @@ interval."""
 REPORT = "final_returns.md"
 REPORTED_ACTOR = {"figure5": "td3"}
 """The actor whose curves and final returns an experiment reports (μ where not named)."""
-ACTOR_NAMES = {"mu": "μ", "td3": "the TD3 actor", "elite": "the elite"}
+ACTOR_NAMES = {"mu": "μ", "td3": "the TD3 actor"}
 
 
 @dataclasses.dataclass(frozen=True)
 class Curves:
-    """The test returns of μ of several seeds on one grid of env steps."""
+    """The test returns of one actor over several seeds on one grid of env steps."""
 
     steps: np.ndarray
     """[G] multiples of GRID_STEP up to the last that every seed reached."""
@@ -92,15 +94,21 @@ class Finals:
     """Final returns of one (task, configuration) over its seeds, with their statistics."""
 
     source: str
-    seeds: list
+    steps: int
+    """Env steps at which the returns were measured."""
     returns: np.ndarray
 
     def row(self, key: jax.Array) -> list[str]:
         r = self.returns
         low, high = stratified_bootstrap_ci([r], key)
-        std = r.std(ddof=1) if len(r) > 1 else 0.0
-        return [self.source, " ".join(f"{x:,.0f}" for x in r), f"{r.mean():,.0f} ± {std:,.0f}",
+        return [self.source, f"{self.steps:,}", " ".join(f"{x:,.0f}" for x in r),
+                f"{r.mean():,.0f} ± {sample_std(r):,.0f}",
                 f"{iqm(r):,.0f} [{low:,.0f}, {high:,.0f}]"]
+
+
+def sample_std(values: np.ndarray, axis: int = 0) -> np.ndarray:
+    """The std over seeds with Bessel's correction (0 for a single seed)."""
+    return values.std(axis=axis, ddof=1) if values.shape[axis] > 1 else values.std(axis=axis)
 
 
 def _seed_files(directory: pathlib.Path, actor: str) -> list[pathlib.Path]:
@@ -120,7 +128,7 @@ def _ours(directory: pathlib.Path, actor: str = "mu"
     if not result.exists():
         return curves, None
     done = json.loads(result.read_text())
-    return curves, Finals(f"ours: {done['config']}", done["seeds"],
+    return curves, Finals(f"ours: {done['config']}", done["steps"],
                           np.array(done["final"][actor]))
 
 
@@ -130,14 +138,14 @@ def _paper(reference: pathlib.Path, task: str) -> tuple[Optional[Curves], Option
     if not files:
         return None, None
     read = [read_curve(p) for p in files]
-    return on_grid(read), Finals("paper: PGPS", [int(p.stem) for p in files],
+    return on_grid(read), Finals("paper: PGPS", int(max(s[-1] for s, _ in read)),
                                  np.array([r[-1] for _, r in read]))
 
 
 def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = REFERENCE
-           ) -> list[pathlib.Path]:
+                 ) -> list[pathlib.Path]:
     """Writes the figures of every task of `experiment` that has results under `out`, and the
-    table of final returns; returns the files written."""
+    table of final returns; returns the files written. UsageError if there are none."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -159,7 +167,7 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
                                         ("paper: PGPS", paper)]:
             if curves is None:
                 continue
-            mean, std = curves.returns.mean(0), curves.returns.std(0)
+            mean, std = curves.returns.mean(0), sample_std(curves.returns)
             line, = ax.plot(curves.steps, mean, label=f"{label} ({len(curves.returns)} seeds)")
             ax.fill_between(curves.steps, mean - std, mean + std, alpha=0.2,
                             color=line.get_color())
@@ -175,9 +183,13 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
             if finals is not None:
                 table.append([task, *finals.row(key)])
         if experiment == "figure6":
-            written += [_draw_q_filter(root / task / config, root / f"{task}_q_filter.png",
-                                       task, plt) for config in ours]
-    header = ["task", "run", "final return per seed", "mean ± std", "IQM [95 % CI]"]
+            written += [_draw_q_filter(root / task / config,
+                                       root / f"{task}_{config}_q_filter.png", task, plt)
+                        for config in ours]
+    if not written:
+        raise UsageError(f"no results of {experiment} under {out}")
+    header = ["task", "run", "env steps", "final return per seed", "mean ± std",
+              "IQM [95 % CI]"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(row) + " |" for row in table]
     path = root / REPORT
@@ -197,9 +209,25 @@ def filtered_and_sampled(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, np
         returns = [float(r[f"return_{i}"]) for i in range(n)]
         chosen = returns[n // 2:n - 1] if float(r["td3_in_population"]) else returns[n // 2:]
         steps.append(float(r["env_steps"]))
-        filtered.append(np.mean(chosen))
-        sampled.append(np.mean(returns[1:n // 2]))
+        filtered.append(np.mean(chosen) if chosen else np.nan)
+        sampled.append(np.mean(returns[1:n // 2]) if n // 2 > 1 else np.nan)
     return np.array(steps), np.array(filtered), np.array(sampled)
+
+
+def binned_means(series: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Per seed (env steps, values), the mean value in each span [kG, (k+1)G) of G =
+    GRID_STEP steps, averaged over the seeds, for the spans every seed finished; returns the
+    spans' ends and the means (NaN values left out)."""
+    last = min(int(steps[-1]) // GRID_STEP for steps, _ in series)  # the last, unfinished span
+    spans = np.arange(last)
+    per_seed = []
+    for steps, values in series:
+        span = steps.astype(np.int64) // GRID_STEP
+        per_seed.append([np.nanmean(values[span == k]) if np.any(~np.isnan(values[span == k]))
+                         else np.nan for k in spans])
+    per_seed = np.array(per_seed).reshape(len(series), len(spans))
+    seen = ~np.all(np.isnan(per_seed), axis=0)
+    return (spans[seen] + 1) * GRID_STEP, np.nanmean(per_seed[:, seen], axis=0)
 
 
 def _draw_q_filter(directory: pathlib.Path, figure: pathlib.Path, task: str, plt
@@ -210,17 +238,9 @@ def _draw_q_filter(directory: pathlib.Path, figure: pathlib.Path, task: str, plt
     per_seed = [filtered_and_sampled(p) for p in sorted(directory.glob("seed*_generations.csv"))]
     per_seed = [s for s in per_seed if len(s[0])]
     if per_seed:
-        end = min(steps[-1] for steps, _, _ in per_seed)
-        edges = np.arange(0, end + GRID_STEP, GRID_STEP)
         for column, label in ((1, "Q-filtered actors"), (2, "randomly sampled actors")):
-            binned = []
-            for data in per_seed:
-                bins = np.digitize(data[0], edges)
-                binned.append([data[column][bins == b].mean() if np.any(bins == b) else np.nan
-                               for b in range(1, len(edges))])
-            binned = np.array(binned)
-            seen = ~np.all(np.isnan(binned), axis=0)
-            ax.plot(edges[1:][seen], np.nanmean(binned[:, seen], axis=0), label=label)
+            ends, means = binned_means([(data[0], data[column]) for data in per_seed])
+            ax.plot(ends, means, label=label)
     ax.set(title=f"{task}: actors of the population", xlabel="env steps",
            ylabel=f"mean return per {GRID_STEP:,} steps")
     ax.legend(loc="upper left", fontsize=8)

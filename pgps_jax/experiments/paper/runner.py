@@ -117,7 +117,11 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             curves = {actor: [[] for _ in range(batch)] for actor in EVALUATED_ACTORS}
             populations = [[] for _ in range(batch)]
         else:
-            _require_same(directory, checkpoints.latest_meta()[1]["settings"], settings)
+            meta = checkpoints.latest_meta()[1]
+            _require_same(directory, meta["settings"], settings)
+            if not isinstance(meta["curves"], dict):
+                raise UsageError(f"{directory / 'checkpoints'} was written by an older runner "
+                                 "(μ's curves only); remove it to run the cell again")
             shapes = loop.placed(loop.state_shapes(agent, keys, eval_keys, seeds=True),
                                  sharding)
             generation, state, meta = checkpoints.restore_latest(shapes)
@@ -142,7 +146,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                     "settings": settings, "curves": curves, "populations": populations,
                     "elapsed_s": elapsed + time.perf_counter() - start})
                 _write_curves(directory, curves, budget)
-                _write_populations(directory, populations[:budget.seeds], config)
+                _write_populations(directory, populations, config, budget)
             if on_generation is not None:
                 on_generation(generation, steps[:budget.seeds])
         final_keys = jax.device_put(
@@ -153,7 +157,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     for seed in np.flatnonzero(finished.unfinished_active):  # played from its start
         _add_evaluation(curves, finished.unfinished, seed, int(finished.unfinished_step[seed]))
     _write_curves(directory, curves, budget)
-    _write_populations(directory, populations[:budget.seeds], config)
+    _write_populations(directory, populations, config, budget)
     result = {"task": cell.task, "config": cell.config, "overrides": dict(cell.overrides),
               "steps": budget.steps, "seeds": list(range(1, budget.seeds + 1)),
               "env_steps": steps[:budget.seeds].tolist(), "generations": generation,
@@ -174,8 +178,13 @@ def _settings(config, budget: Budget, devices: int) -> dict:
         "steps": budget.steps, "seeds": budget.seeds, "devices": devices}))
 
 
+_ADDED_SETTINGS = {"env": {}}
+"""Settings that cells started before they existed ran under."""
+
+
 def _require_same(directory: pathlib.Path, saved: dict, now: dict) -> None:
     """UsageError naming the settings in which the cell in `directory` differs from `now`."""
+    saved = {**_ADDED_SETTINGS, **saved}
     differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now" for key in now
               if key != "config" and saved.get(key) != now[key]]
     differ += [f"config.{k}: {saved['config'].get(k)!r} there, {v!r} now"
@@ -200,10 +209,11 @@ def _population_metrics(config) -> list[Metric]:
     return [schema[key] for key in keys]
 
 
-def _write_populations(directory: pathlib.Path, populations: list, config) -> None:
-    """seed<k>_generations.csv of every seed (`_population_metrics`)."""
+def _write_populations(directory: pathlib.Path, populations: list, config,
+                       budget: Budget) -> None:
+    """seed<k>_generations.csv of every seed of the budget (`_population_metrics`)."""
     header = ["generation"] + [m.column for m in _population_metrics(config)]
-    for seed, rows in enumerate(populations, start=1):
+    for seed, rows in enumerate(populations[:budget.seeds], start=1):
         rundir.write_csv(directory / f"seed{seed}_generations.csv", header, rows)
 
 
