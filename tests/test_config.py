@@ -50,6 +50,7 @@ def test_unknown_task_lists_choices():
     (dict(actor_lr=-1e-3), "actor_lr", "> 0"),
     (dict(t_init=2000), "t_init", "<= t_max=1000"),
     (dict(fell_behind_rule="median"), "fell_behind_rule", "one of mean_minus_std, mean"),
+    (dict(beta_adapted="later"), "beta_adapted", "one of before_block, after_block"),
     (dict(buffer_size=5000, warmup_steps=1000), "buffer_size", "10 episodes × t_max = 10000"),
     (dict(buffer_size=10_000, warmup_steps=1000, pg_guides_ea=False), "buffer_size",
      "11 episodes × t_max = 11000"),

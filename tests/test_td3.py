@@ -194,10 +194,14 @@ def test_unrolled_repeat_equals_plain_loop():
                                    rtol=1e-6)
 
 
-def test_train_equals_the_updates_one_by_one(setup):
+@pytest.mark.parametrize("beta_adapted", ["before_block", "after_block"])
+def test_train_equals_the_updates_one_by_one(setup, beta_adapted):
     """Batched target and elite actions give what per-update forward passes give: π' moves only
-    in the actor phase and the elite never, so precomputing them per block changes nothing."""
+    in the actor phase and the elite never, so precomputing them per block changes nothing. β
+    is adapted from D on the block's SS_2 before its updates (Algorithm 1) or after them (the
+    authors' code)."""
     td3, state, _ = setup
+    td3 = TD3(td3.config.replace(beta_adapted=beta_adapted), OBS, ACT)
     buf = _filled_buffer()
     key, num_update, max_update, beta = jax.random.PRNGKey(4), 3, 4, jnp.asarray(0.3)
     elite = td3.init(jax.random.PRNGKey(9)).actor
@@ -208,9 +212,13 @@ def test_train_equals_the_updates_one_by_one(setup):
     for b in range(td3.config.update_blocks):   # Appendix B, written out with its draws
         ss2_key, critic_key, noise_key, actor_key = jax.random.split(jax.random.fold_in(key, b), 4)
         ss2 = replay.sample_obs(buf, ss2_key, td3.config.ss2_size)
-        beta = adapt_beta(beta, action_distance(td3.actor_net.apply(reference.actor, ss2),
-                                                td3.actor_net.apply(elite, ss2)),
-                          0.05, 1e-3, 1024.0)
+
+        def adapted(beta, actor):
+            return adapt_beta(beta, action_distance(td3.actor_net.apply(actor, ss2),
+                                                    td3.actor_net.apply(elite, ss2)),
+                              0.05, 1e-3, 1024.0)
+        if beta_adapted == "before_block":
+            beta = adapted(beta, reference.actor)
         critic_rows = replay.random_rows(buf, critic_key, (max_update, td3.config.batch_size))
         noise = td3.smoothing_noise(noise_key, (max_update, td3.config.batch_size, ACT))
         actor_rows = replay.random_rows(buf, actor_key, (max_update, td3.config.batch_size))
@@ -222,6 +230,8 @@ def test_train_equals_the_updates_one_by_one(setup):
         for i in range(num_update):
             obs = buf.data.obs[actor_rows[i]]
             reference, _ = td3.actor_update(reference, obs, td3.actor_net.apply(elite, obs), beta)
+        if beta_adapted == "after_block":
+            beta = adapted(beta, reference.actor)
     assert float(new_beta) == pytest.approx(float(beta))
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5),
                  new, reference)

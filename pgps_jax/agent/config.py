@@ -10,6 +10,7 @@ from typing import Tuple
 
 TASK_NAMES = ("swimmer", "halfcheetah", "hopper", "walker2d", "ant")
 FELL_BEHIND_RULES = ("mean_minus_std", "mean")
+BETA_ADAPTED = ("before_block", "after_block")
 EVALUATED_ACTORS = ("mu", "td3", "elite")
 """The actors each evaluation tests, in batch order: the CEM mean μ, the TD3 actor, the elite."""
 
@@ -80,7 +81,11 @@ class PGPSConfig:
     d_target: float = 0.05
     """D_target of the β rule (eq. 3)."""
     ss2_size: int = 512
-    """SS_2: states drawn to measure D before each guided block."""
+    """SS_2: states drawn to measure D in each guided block."""
+    beta_adapted: str = "before_block"
+    """When a guided block adapts β (eq. 3): "before_block", from D before its updates
+    (Algorithm 1); "after_block", from D after its updates on the same SS_2 states, the new β
+    weighting the next block (what the authors' code does)."""
     fell_behind_rule: str = "mean_minus_std"
     """When the TD3 actor fell behind (EA→PG): "mean_minus_std", Return_TD3 < mean − std of
     the generation's returns (Algorithm 1); "mean", Return_TD3 < mean (what the authors'
@@ -219,6 +224,8 @@ def _validate(c: PGPSConfig) -> None:
              f"in [beta_min={c.beta_min}, beta_max={c.beta_max}]")
     _require(c.fell_behind_rule in FELL_BEHIND_RULES, "fell_behind_rule", c.fell_behind_rule,
              f"one of {', '.join(FELL_BEHIND_RULES)}")
+    _require(c.beta_adapted in BETA_ADAPTED, "beta_adapted", c.beta_adapted,
+             f"one of {', '.join(BETA_ADAPTED)}")
     _require(c.t_init <= c.t_max, "t_init", c.t_init, f"<= t_max={c.t_max}")
     _require(c.resample_before_q_filter or c.q_filter, "resample_before_q_filter",
              c.resample_before_q_filter, "true when q_filter is false (the population kept "

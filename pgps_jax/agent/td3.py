@@ -164,8 +164,9 @@ class TD3:
               beta: jax.Array) -> tuple[TD3State, jax.Array, dict]:
         """Appendix B schedule: `update_blocks` × [num_update critic, num_update actor updates].
 
-        When `guided` (the TD3 actor fell behind), each block first draws SS_2 and adapts β
-        (eq. 3), then trains the actor on L^A toward `elite_actor`; otherwise on L^O.
+        When `guided` (the TD3 actor fell behind), each block draws SS_2 and adapts β (eq. 3)
+        from D on it, before its updates or after them (`beta_adapted`), and trains the actor
+        on L^A toward `elite_actor`; otherwise on L^O.
         `max_update` (static) bounds num_update: each block draws the rows and the smoothing
         noise of up to that many updates in one go, and computes their target actions (and,
         when guided, the elite's actions) in batches of `_PRECOMPUTE_UPDATES` updates, keeping
@@ -182,10 +183,15 @@ class TD3:
             ss2_key, critic_key, noise_key, actor_key = jax.random.split(
                 jax.random.fold_in(key, b), 4)
             ss2 = replay.sample_obs(buffer, ss2_key, c.ss2_size)
-            distance = action_distance(self.actor_net.apply(state.actor, ss2),
-                                       self.actor_net.apply(elite_actor, ss2))
-            beta = jnp.where(guided, adapt_beta(beta, distance, c.d_target, c.beta_min,
-                                                c.beta_max), beta)
+            elite_on_ss2 = self.actor_net.apply(elite_actor, ss2)
+
+            def adapted(beta, actor):
+                distance = action_distance(self.actor_net.apply(actor, ss2), elite_on_ss2)
+                return jnp.where(guided, adapt_beta(beta, distance, c.d_target, c.beta_min,
+                                                    c.beta_max), beta)
+
+            if c.beta_adapted == "before_block":
+                beta = adapted(beta, state.actor)
             critic_rows = replay.random_rows(buffer, critic_key, batches)
             noise = self.smoothing_noise(noise_key, batches + (self.action_size,))
             next_actions = in_batches(functools.partial(self.target_actions, state.actor_target),
@@ -214,6 +220,8 @@ class TD3:
 
             state, actor_total = repeat(num_update, actor_step, (state, actor_total),
                                         c.update_unroll)
+            if c.beta_adapted == "after_block":
+                beta = adapted(beta, state.actor)
             return state, beta, critic_total, actor_total
 
         zero = jnp.zeros((), jnp.float32)
