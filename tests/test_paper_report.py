@@ -70,7 +70,8 @@ def test_the_report_draws_each_run_beside_the_paper_and_tabulates_the_done_ones(
     written = report.write_report("table1", out, reference)
 
     figure, table = out / "table1" / "ant.png", out / "table1" / report.REPORT
-    assert written == [figure, table]
+    assert written == [figure, out / "table1" / "table1.md", table]
+    assert len((out / "table1" / "table1.md").read_text().splitlines()) == 2  # no base done
     assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rows = [line.split(" | ") for line in table.read_text().splitlines()[2:]]
     ours = np.array([100.0, 250.0, 400.0])
@@ -139,3 +140,16 @@ def test_binned_means_average_each_finished_span_then_the_seeds():
 def test_no_results_is_a_usage_error(tmp_path):
     with pytest.raises(report.UsageError, match="no results of figure4 under"):
         report.write_report("figure4", tmp_path, tmp_path)
+
+
+def test_table1_normalises_each_task_by_the_base_model_s_better_actor():
+    def result(mu, td3, wall):
+        return {"final": {"mu": mu, "td3": td3}, "wall_s": wall}
+    done = {("walker2d", "base"): result([100.0, 200.0], [150.0, 100.0], 100.0),
+            ("walker2d", "pgps"): result([350.0, 350.0], [0.0, 0.0], 110.0),
+            ("ant", "base"): result([10.0, 10.0], [20.0, 0.0], 50.0),
+            ("ant", "pgps"): result([30.0, 30.0], [0.0, 0.0], 65.0),
+            ("halfcheetah", "q_filter"): result([1.0], [1.0], 1.0)}  # no base there: left out
+    # base per run: the better of μ and TD3 -> walker2d 175, ant 15; pgps 350 and 30 -> 2 both
+    assert report.table1_rows(done) == [["base", "1.00", "1.000", "walker2d ant"],
+                                        ["pgps", "2.00", "1.200", "walker2d ant"]]

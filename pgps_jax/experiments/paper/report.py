@@ -7,10 +7,10 @@ interval).
 Writes into `<out>/<experiment>/`: `<task>.png` (the test return of μ against env steps, mean ±
 std over the seeds, every configuration run on the task and the paper's PGPS; of the TD3 actor
 in `figure5`, as the paper's Figure 5), `final_returns.md` (per task and configuration: the
-env steps, the final return of each seed, mean ± std, IQM [95 % CI], and the paper's); std is
-the sample std over seeds throughout and, for `figure6`,
-`<task>_q_filter.png` (Figure 6: per 10k env steps, the mean return of the Q-filtered actors
-and of the randomly sampled ones).
+env steps, the final return of each seed, mean ± std, IQM [95 % CI], and the paper's); for
+`figure6` also `<task>_<config>_q_filter.png` (Figure 6: per 10k env steps, the mean return of
+the Q-filtered actors and of the randomly sampled ones), and for `table1` also `table1.md`
+(`table1_rows`). "std" is the sample std over seeds throughout.
 """
 
 import csv
@@ -188,6 +188,16 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
                         for config in ours]
     if not written:
         raise UsageError(f"no results of {experiment} under {out}")
+    if experiment == "table1":
+        done = {(c.task, c.config): json.loads((root / c.task / c.config / "result.json")
+                                               .read_text())
+                for c in cells(experiment) if (root / c.task / c.config / "result.json").exists()}
+        lines = ["| model | normalised score | normalised wall-clock | tasks |",
+                 "|---|---|---|---|"]
+        lines += ["| " + " | ".join(row) + " |" for row in table1_rows(done)]
+        path = root / "table1.md"
+        rundir.write_atomic(path, ("\n".join(lines) + "\n").encode())
+        written.append(path)
     header = ["task", "run", "env steps", "final return per seed", "mean ± std",
               "IQM [95 % CI]"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -248,3 +258,24 @@ def _draw_q_filter(directory: pathlib.Path, figure: pathlib.Path, task: str, plt
     fig.savefig(figure, dpi=120)
     plt.close(fig)
     return figure
+
+
+def table1_rows(done: dict) -> list[list[str]]:
+    """Table 1 of the paper from the done cells' results ({(task, model): result}): per model,
+    the mean over tasks of its mean final return divided by the Base model's on the task (the
+    Base model's final return of a run is the better of μ's and the TD3 actor's, as the paper
+    selects it), and the same ratio of wall-clock; only tasks where the Base model is done."""
+    def score(task, model):
+        final = done[(task, model)]["final"]
+        per_run = np.maximum(final["mu"], final["td3"]) if model == "base" else final["mu"]
+        return float(np.mean(per_run))
+
+    rows = []
+    for model in dict.fromkeys(model for _, model in done):
+        tasks = [task for task, m in done if m == model and (task, "base") in done]
+        if not tasks:
+            continue
+        ratio = np.mean([score(t, model) / score(t, "base") for t in tasks])
+        wall = np.mean([done[(t, model)]["wall_s"] / done[(t, "base")]["wall_s"] for t in tasks])
+        rows.append([model, f"{ratio:.2f}", f"{wall:.3f}", " ".join(tasks)])
+    return rows
