@@ -81,7 +81,7 @@ def test_the_report_draws_each_run_beside_the_paper_and_tabulates_the_done_ones(
                        f"250 [{low:,.0f}, {high:,.0f}] |"]
     assert rows[1][:5] == ["| ant", "paper: PGPS", "30,000", "350 330", "340 ± 14"]
     assert len(rows) == 2  # the running cell is drawn, not tabulated
-    curves, finals = report._ours(running)
+    curves, finals, _ = report._ours(running)
     assert finals is None and curves.returns.tolist() == [[1.0, 2.0]]
 
 
@@ -101,7 +101,7 @@ def test_figure5_reports_the_td3_actor_without_the_paper_s_mu(tmp_path):
 
     rows = (out / "figure5" / report.REPORT).read_text().splitlines()[2:]
     assert rows == ["| swimmer | ours: without_ea_guidance | 20,000 | 61 | 61 ± 0 | 61 [61, 61] |"]
-    curves, _ = report._ours(cell, "td3")
+    curves, _, _ = report._ours(cell, "td3")
     assert curves.returns.tolist() == [[50.0, 60.0]]
 
 

@@ -164,9 +164,10 @@ def main(argv=None) -> int:
 
     def body() -> int:
         if args.report:
-            if args.experiment not in EXPERIMENTS:
-                raise UsageError(f"unknown experiment {args.experiment!r}; valid: "
-                                 f"{', '.join(EXPERIMENTS)}")
+            try:
+                cells(args.experiment)
+            except ValueError as e:
+                raise UsageError(str(e)) from None
             require_reference(args.reference)
             for path in write_report(args.experiment, args.out, args.reference):
                 print(path)

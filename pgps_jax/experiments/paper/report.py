@@ -119,17 +119,17 @@ def _seed_files(directory: pathlib.Path, actor: str) -> list[pathlib.Path]:
 
 
 def _ours(directory: pathlib.Path, actor: str = "mu"
-          ) -> tuple[Optional[Curves], Optional[Finals]]:
+          ) -> tuple[Optional[Curves], Optional[Finals], Optional[dict]]:
     """A cell's curves of `actor` (those written so far) and, once it is done, its final
-    returns."""
+    returns and its `result.json`."""
     read = [read_curve(p) for p in _seed_files(directory, actor)]
     curves = on_grid(read) if read and all(len(s) for s, _ in read) else None
-    result = directory / "result.json"
-    if not result.exists():
-        return curves, None
-    done = json.loads(result.read_text())
-    return curves, Finals(f"ours: {done['config']}", done["steps"],
-                          np.array(done["final"][actor]))
+    path = directory / "result.json"
+    if not path.exists():
+        return curves, None, None
+    result = json.loads(path.read_text())
+    return curves, Finals(f"ours: {result['config']}", result["steps"],
+                          np.array(result["final"][actor])), result
 
 
 def _paper(reference: pathlib.Path, task: str) -> tuple[Optional[Curves], Optional[Finals]]:
@@ -154,17 +154,19 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
     actor = REPORTED_ACTOR.get(experiment, "mu")
     tasks = list(dict.fromkeys(c.task for c in cells(experiment)))
     key = jax.random.PRNGKey(BOOTSTRAP_SEED)
-    written, table = [], []
+    written, table, done = [], [], {}
     for task in tasks:
         configs = [c.config for c in cells(experiment, (task,))]
         ours = {config: _ours(root / task / config, actor) for config in configs
                 if (root / task / config).is_dir()}
         if not ours:
             continue
+        done.update({(task, config): result for config, (_, _, result) in ours.items()
+                     if result is not None})
         paper = _paper(reference, task) if actor == "mu" else (None, None)
         fig, ax = plt.subplots(figsize=(6, 4))
-        for label, (curves, finals) in [*((f"ours: {c}", v) for c, v in ours.items()),
-                                        ("paper: PGPS", paper)]:
+        for label, (curves, _) in [*((f"ours: {c}", v[:2]) for c, v in ours.items()),
+                                   ("paper: PGPS", paper)]:
             if curves is None:
                 continue
             mean, std = curves.returns.mean(0), sample_std(curves.returns)
@@ -179,7 +181,7 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
         fig.savefig(figure, dpi=120)
         plt.close(fig)
         written.append(figure)
-        for finals in [f for _, f in ours.values()] + [paper[1]]:
+        for finals in [v[1] for v in ours.values()] + [paper[1]]:
             if finals is not None:
                 table.append([task, *finals.row(key)])
         if experiment == "figure6":
@@ -189,22 +191,20 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
     if not written:
         raise UsageError(f"no results of {experiment} under {out}")
     if experiment == "table1":
-        done = {(c.task, c.config): json.loads((root / c.task / c.config / "result.json")
-                                               .read_text())
-                for c in cells(experiment) if (root / c.task / c.config / "result.json").exists()}
-        lines = ["| model | normalised score | normalised wall-clock | tasks |",
-                 "|---|---|---|---|"]
-        lines += ["| " + " | ".join(row) + " |" for row in table1_rows(done)]
-        path = root / "table1.md"
-        rundir.write_atomic(path, ("\n".join(lines) + "\n").encode())
-        written.append(path)
-    header = ["task", "run", "env steps", "final return per seed", "mean ± std",
-              "IQM [95 % CI]"]
+        written.append(_write_table(root / "table1.md", ["model", "normalised score",
+                                    "normalised wall-clock", "tasks"], table1_rows(done)))
+    return written + [_write_table(root / REPORT, ["task", "run", "env steps",
+                                   "final return per seed", "mean ± std", "IQM [95 % CI]"],
+                                   table)]
+
+
+def _write_table(path: pathlib.Path, header: list[str], rows: list[list[str]]
+                 ) -> pathlib.Path:
+    """A Markdown table, written atomically; returns its path."""
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(row) + " |" for row in table]
-    path = root / REPORT
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
     rundir.write_atomic(path, ("\n".join(lines) + "\n").encode())
-    return written + [path]
+    return path
 
 
 def filtered_and_sampled(path: pathlib.Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
