@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, for_task
+from pgps_jax.agent.config import EvaluationConfig, for_task
 from pgps_jax.agent.pgps import PGPS
 from pgps_jax.cli import loop
 from pgps_jax.envs import make_env
@@ -77,7 +77,7 @@ def train(task: str, steps: int, seeds: int, overrides: dict, env_kwargs: dict) 
     return {"task": task, "steps": steps, "seeds": seeds, "overrides": overrides,
             "env": env_kwargs, "wall_s": time.perf_counter() - start,
             "final": {name: np.asarray(finished.final[f"eval/{name}_mean"]).tolist()
-                      for name in EVALUATED_ACTORS},
+                      for name in agent.evaluated},
             "curves": curves, "per_generation": per_generation}
 
 

@@ -1,5 +1,7 @@
 """PGPS in JAX: `PGPS(config, env)` with pure `init`, `generation_step` and `evaluate` over a
 `TrainState`; `for_task` gives the paper's configuration of a task and `make_env` the task.
+The baselines built from the same parts share that interface: `make_agent(algo, config, env)`
+with `for_task(task, algo)` (`CEMAlone`, `TD3Alone`, `CEMRL`).
 
     from pgps_jax import PGPS, for_task, make_env
 
@@ -12,7 +14,11 @@ import importlib
 
 _PUBLIC = {
     "PGPS": "pgps_jax.agent.pgps",
-    "TrainState": "pgps_jax.agent.pgps",
+    "CEMAlone": "pgps_jax.agent.baselines.cem",
+    "TD3Alone": "pgps_jax.agent.baselines.td3",
+    "CEMRL": "pgps_jax.agent.baselines.cemrl",
+    "make_agent": "pgps_jax.agent.algorithms",
+    "TrainState": "pgps_jax.agent.base",
     "PGPSConfig": "pgps_jax.agent.config",
     "for_task": "pgps_jax.agent.config",
     "EvaluationConfig": "pgps_jax.agent.config",

@@ -35,7 +35,8 @@ class Stop(Exception):
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):
     out = tmp_path_factory.mktemp("paper")
-    results = command.run("figure4", out, BUDGET, tasks=["hopper"], progress=False)
+    results = command.run("figure4", out, BUDGET, tasks=["hopper"], configs=["pgps"],
+                          progress=False)
     return out, results
 
 
@@ -45,7 +46,7 @@ def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrup
     assert result["seeds"] == [1, 2] and min(result["env_steps"]) >= BUDGET.steps
     for seed in (1, 2):
         curves = {actor: read_csv(cell / runner.seed_file(seed, actor))
-                  for actor in ("mu", "td3", "elite")}
+                  for actor in ("", "td3", "elite")}
         assert runner.seed_file(seed) == f"seed{seed}.csv"
         for header, rows in curves.values():
             assert header == ["", "Step", "Mean", "Std", "Reward1", "Reward2"]
@@ -55,8 +56,8 @@ def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrup
                 rewards = [float(r["Reward1"]), float(r["Reward2"])]
                 assert float(r["Mean"]) == pytest.approx(np.mean(rewards), rel=1e-6)
                 assert float(r["Std"]) == pytest.approx(np.std(rewards), rel=1e-5, abs=1e-6)
-        assert [r["Step"] for r in curves["td3"][1]] == [r["Step"] for r in curves["mu"][1]]
-        assert [r["Mean"] for r in curves["td3"][1]] != [r["Mean"] for r in curves["mu"][1]]
+        assert [r["Step"] for r in curves["td3"][1]] == [r["Step"] for r in curves[""][1]]
+        assert [r["Mean"] for r in curves["td3"][1]] != [r["Mean"] for r in curves[""][1]]
         header, rows = read_csv(cell / f"seed{seed}_generations.csv")
         assert header == ["generation", "env_steps", "T", "q_filter_active",
                           "td3_in_population", "return_0", "return_1", "elite_return",
@@ -92,13 +93,16 @@ def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
     out, _ = uninterrupted
     longer = dataclasses.replace(BUDGET, steps=800)
     with pytest.raises(UsageError, match="steps: 600 there, 800 now"):
-        command.run("figure4", out, longer, tasks=["hopper"], progress=False)
+        command.run("figure4", out, longer, tasks=["hopper"], configs=["pgps"],
+                    progress=False)
     other = dataclasses.replace(BUDGET, overrides=BUDGET.overrides + (("ss1_size", 4),))
     with pytest.raises(UsageError, match="config.ss1_size: 8 there, 4 now"):
-        command.run("figure4", out, other, tasks=["hopper"], progress=False)
+        command.run("figure4", out, other, tasks=["hopper"], configs=["pgps"],
+                    progress=False)
     contacts = dataclasses.replace(BUDGET, env=(("iterations", 2),))
     with pytest.raises(UsageError, match="env: {} there, {'iterations': 2} now"):
-        command.run("figure4", out, contacts, tasks=["hopper"], progress=False)
+        command.run("figure4", out, contacts, tasks=["hopper"], configs=["pgps"],
+                    progress=False)
     result = json.loads((out / "figure4" / "hopper" / "pgps" / runner.RESULT).read_text())
     before_env = {k: v for k, v in result["settings"].items() if k != "env"}
     runner._require_same(out, before_env, result["settings"])  # a cell from before --env
@@ -145,7 +149,7 @@ def test_seeds_are_split_over_the_devices(tmp_path):
     sets = [f"{k}={list(v) if isinstance(v, tuple) else v}" for k, v in TINY.items()]
     result = subprocess.run(
         [sys.executable, "-m", "pgps_jax.experiments.paper", "figure4", "--tasks", "hopper",
-         "--steps", "400", "--seeds", "3", "--no-progress", "--set", *sets, "--eval",
+         "--configs", "pgps", "--steps", "400", "--seeds", "3", "--no-progress", "--set", *sets, "--eval",
          "every=200", "episodes=2", "steps=50", "--out", str(tmp_path)],
         cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
@@ -163,8 +167,9 @@ def test_padding_rounds_the_batch_up_to_the_devices():
 
 
 def test_the_grids_hold_the_paper_s_cells():
-    assert [c.task for c in grid.cells("figure4")] == ["swimmer", "halfcheetah", "hopper",
-                                                      "walker2d", "ant"]
+    assert [(c.task, c.config, c.algo) for c in grid.cells("figure4")] == [
+        (task, algo, algo) for task in ("swimmer", "halfcheetah", "hopper", "walker2d", "ant")
+        for algo in ("pgps", "cem", "td3", "cemrl")]
     table1 = grid.cells("table1", tasks=("ant",))
     assert [c.config for c in table1] == ["base", "pg_to_ea", "ea_to_pg", "q_filter", "pgps"]
     flags = ("pg_guides_ea", "ea_guides_pg", "q_filter", "increasing_steps")
@@ -177,7 +182,9 @@ def test_the_grids_hold_the_paper_s_cells():
     (["figure7", "--report"], ["unknown experiment 'figure7'", "figure4", "table1"]),
     (["figure4", "--report", "--reference", "nowhere"], ["--reference nowhere: no such folder"]),
     (["table1", "--tasks", "swimmer"], ["table1 has no task swimmer", "ant", "walker2d"]),
-    (["figure4", "--configs", "td3"], ["no configuration td3", "pgps"]),
+    (["figure4", "--configs", "sac"], ["no configuration sac", "cem, cemrl, pgps, td3"]),
+    (["figure4", "--configs", "cem", "--set", "warmup_steps=200"],
+     ["swimmer cem: CEM alone has no replay buffer to warm up"]),
     (["figure4", "--set", "pop_sise=4"], ["--set 'pop_sise=4'", "pop_size"]),
     (["figure4", "--set", "q_filter=maybe"], ["--set q_filter must be true or false"]),
     (["table1", "--set", "q_filter=true"], ["--set q_filter", "sets it itself"]),

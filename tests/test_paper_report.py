@@ -153,3 +153,24 @@ def test_table1_normalises_each_task_by_the_base_model_s_better_actor():
     # base per run: the better of μ and TD3 -> walker2d 175, ant 15; pgps 350 and 30 -> 2 both
     assert report.table1_rows(done) == [["base", "1.00", "1.000", "walker2d ant"],
                                         ["pgps", "2.00", "1.200", "walker2d ant"]]
+
+
+def test_figure4_reports_each_algorithms_actor_and_the_peers_found_beside_them(tmp_path):
+    """TD3 alone reports its actor (`seed<k>.csv`, the first of its final returns), a peer's
+    folder with a result.json (benchmarks.peers) joins the figure and the table."""
+    out, reference = tmp_path / "results", tmp_path / "reference"
+    (reference / "hopper").mkdir(parents=True)
+    _curve(reference / "hopper" / "1.csv", [10_000, 20_000], [0.0, 100.0])
+    for config, final in (("td3", {"td3": [123.0, 125.0]}),
+                          ("brax_sac", {"policy": [321.0, 323.0]})):
+        cell = out / "figure4" / "hopper" / config
+        cell.mkdir(parents=True)
+        for seed in (1, 2):
+            _curve(cell / f"seed{seed}.csv", [10_000, 20_000], [1.0, final[next(iter(final))][0]])
+        (cell / "result.json").write_text(json.dumps(
+            {"config": config, "seeds": [1, 2], "steps": 20_000, "final": final}))
+    report.write_report("figure4", out, reference)
+    table = (out / "figure4" / report.REPORT).read_text()
+    assert "| hopper | ours: td3 | 20,000 | 123 125 |" in table
+    assert "| hopper | ours: brax_sac | 20,000 | 321 323 |" in table
+    assert (out / "figure4" / "hopper.png").exists()

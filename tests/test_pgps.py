@@ -362,7 +362,8 @@ def test_the_metrics_are_those_of_the_schema():
     agent, init, step = programs(SMALL)
     _, metrics = jax.eval_shape(step, jax.eval_shape(init, jax.random.PRNGKey(0)))
     listed = [m.key for m in (*schema.generation_metrics(SMALL.pop_size),
-                              *schema.EVALUATION_REPORT, *schema.evaluation_metrics())]
+                              *schema.EVALUATION_REPORT,
+                              *schema.evaluation_metrics(agent.evaluated))]
     listed += [schema.returns_key(a) for a in ("mu", "td3", "elite")]
     assert len(listed) == len(set(listed)) and set(metrics) == set(listed)
 

@@ -14,6 +14,7 @@ from omegaconf import OmegaConf
 
 from pgps_jax.cli import train
 from pgps_jax.cli.errors import EXIT_FAILED
+from pgps_jax.agent import metrics as schema
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.agent.pgps import PGPS
 from pgps_jax.cli.run_config import CONFIG_DIR, from_dict
@@ -59,7 +60,7 @@ def test_resolved_config_is_saved(reference):
 def test_metrics_csv_has_one_row_per_generation(reference):
     run_dir, _ = reference
     header, rows = read_csv(run_dir / rundir.METRICS)
-    assert header == rundir.metrics_columns(POP)
+    assert header == rundir.metrics_columns(schema.generation_metrics(POP))
     for column in ("env_steps", "T", "return_0", "return_3", "elite_return", "td3_return",
                    "guided_loss", "beta", "critic_loss", "actor_loss", "steps_per_s"):
         assert column in header

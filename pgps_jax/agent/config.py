@@ -11,8 +11,8 @@ from typing import Tuple
 TASK_NAMES = ("swimmer", "halfcheetah", "hopper", "walker2d", "ant")
 FELL_BEHIND_RULES = ("mean_minus_std", "mean")
 BETA_ADAPTED = ("before_block", "after_block")
-EVALUATED_ACTORS = ("mu", "td3", "elite")
-"""The actors each evaluation tests, in batch order: the CEM mean μ, the TD3 actor, the elite."""
+ALGORITHMS = ("pgps", "cem", "td3", "cemrl")
+"""PGPS and the baselines built from its parts (`pgps_jax.agent.algorithms`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,6 +32,8 @@ class PGPSConfig:
     """τ_Σ: damping ← (1 − τ_Σ)·damping + τ_Σ·Σ_limit each generation."""
     cem_divide_by_k: bool = True
     """Divide the weighted variance term by K, as the authors' (CEM-RL derived) code does."""
+    elitism: bool = True
+    """The last generation's elite plays again in slot 0 (Algorithm 1; off in CEM-RL)."""
 
     # --- networks (Table 2) ---
     actor_hidden: Tuple[int, ...] = (400, 300)
@@ -57,11 +59,18 @@ class PGPSConfig:
     weight_decay: float = 1e-5
     """L2 weight decay added to the gradients (authors' code)."""
     max_grad_norm: float = 10.0
-    """Global gradient-norm clip (authors' code)."""
+    """Global gradient-norm clip (authors' code); 0: no clipping."""
     update_blocks: int = 5
     """Blocks per generation: each is num_update critic then num_update actor updates."""
     update_unroll: int = 4
     """Updates per trip of the update loops (speed only; results are the same)."""
+
+    policy_delay: int = 2
+    """d: the TD3 baseline trains the actor and moves the targets every d critic updates
+    (Fujimoto et al., 2018); PGPS's block schedule (Appendix B) has no delay."""
+    exploration_noise: float = 0.1
+    """Std of the Gaussian noise on the TD3 baseline's actions while it collects experience
+    (Fujimoto et al., 2018); PGPS's actors explore through the CEM's sampling instead."""
 
     # --- replay buffer and warm-up ---
     buffer_size: int = 1_000_000
@@ -165,11 +174,48 @@ _TASK_PRESETS = {
 }
 
 
-def for_task(task: str, **overrides) -> PGPSConfig:
-    """The paper's configuration for `task` (Tables 3 and 4), with `overrides` applied."""
+# The baselines' published hyper-parameters where they differ from PGPS's (Table 3), on every
+# task; `configs/algo/<name>.yaml` holds the same values. CEM and CEM-RL: Pourchot & Sigaud
+# (2019), whose CEM the paper's is (damping 1e-3 decaying by 0.95 a generation, no elitism);
+# TD3: Fujimoto et al. (2018), Table 3 and its published code.
+_ALGORITHM_PRESETS = {
+    "pgps": {},
+    "cem": dict(pop_size=10, top_k=5, sigma_init=1e-3, sigma_decay=0.05, elitism=False,
+                warmup_steps=0, increasing_steps=False, q_filter=False, pg_guides_ea=False,
+                ea_guides_pg=False),
+    "td3": dict(actor_lr=1e-3, critic_lr=1e-3, batch_size=100, weight_decay=0.0,
+                max_grad_norm=0.0, policy_delay=2, exploration_noise=0.1,
+                increasing_steps=False, q_filter=False, pg_guides_ea=False, ea_guides_pg=False),
+    "cemrl": dict(pop_size=10, top_k=5, sigma_init=1e-3, sigma_decay=0.05, elitism=False,
+                  actor_lr=1e-3, critic_lr=1e-3, batch_size=100, weight_decay=0.0,
+                  max_grad_norm=0.0, increasing_steps=False, q_filter=False,
+                  pg_guides_ea=False, ea_guides_pg=False),
+}
+
+
+def for_task(task: str, algo: str = "pgps", **overrides) -> PGPSConfig:
+    """The configuration of `algo` on `task`, with `overrides` applied: for PGPS the paper's
+    (Tables 3 and 4); for a baseline its published hyper-parameters on top of those."""
     if task not in _TASK_PRESETS:
         raise ValueError(f"unknown task {task!r}; valid tasks: {', '.join(TASK_NAMES)}")
-    return PGPSConfig(**{**_TASK_PRESETS[task], **overrides})
+    return PGPSConfig(**{**_TASK_PRESETS[task], **algorithm_preset(algo), **overrides})
+
+
+def check_for_algorithm(algo: str, config: "PGPSConfig") -> None:
+    """Raises ValueError naming a field whose value `algo` cannot run with (CEM alone has no
+    replay buffer to warm up)."""
+    algorithm_preset(algo)
+    if algo == "cem" and config.warmup_steps:
+        raise ValueError(f"CEM alone has no replay buffer to warm up: warmup_steps must be 0, "
+                         f"got {config.warmup_steps}")
+
+
+def algorithm_preset(algo: str) -> dict:
+    """The fields in which `algo`'s hyper-parameters differ from PGPS's; ValueError naming
+    the algorithms for an unknown one."""
+    if algo not in _ALGORITHM_PRESETS:
+        raise ValueError(f"unknown algorithm {algo!r}; valid: {', '.join(ALGORITHMS)}")
+    return dict(_ALGORITHM_PRESETS[algo])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -201,7 +247,7 @@ def _validate(c: PGPSConfig) -> None:
     _require(c.pop_size >= 2, "pop_size", c.pop_size, "an integer >= 2")
     _require(1 <= c.top_k <= c.pop_size, "top_k", c.top_k, f"in [1, pop_size={c.pop_size}]")
     positive_ints = ("batch_size", "buffer_size", "update_blocks", "update_unroll",
-                     "td3_to_cem_period",
+                     "td3_to_cem_period", "policy_delay",
                      "ss1_size", "ss2_size", "t_init", "t_max", "t_interval")
     for name in positive_ints:
         value = getattr(c, name)
@@ -210,7 +256,7 @@ def _validate(c: PGPSConfig) -> None:
         value = getattr(c, name)
         _require(isinstance(value, int) and value >= 0, name, value, "a non-negative integer")
     positive_floats = ("sigma_init", "sigma_limit", "actor_lr", "critic_lr", "beta_init",
-                       "beta_min", "beta_max", "d_target", "max_grad_norm", "sample_ratio")
+                       "beta_min", "beta_max", "d_target", "sample_ratio")
     for name in positive_floats:
         value = getattr(c, name)
         _require(value > 0, name, value, "> 0")
@@ -218,7 +264,8 @@ def _validate(c: PGPSConfig) -> None:
         value = getattr(c, name)
         _require(0 < value <= 1, name, value, "in (0, 1]")
     _require(0 <= c.gamma < 1, "gamma", c.gamma, "in [0, 1)")
-    for name in ("policy_noise", "noise_clip", "weight_decay"):
+    for name in ("policy_noise", "noise_clip", "weight_decay", "max_grad_norm",
+                 "exploration_noise"):
         _require(getattr(c, name) >= 0, name, getattr(c, name), ">= 0")
     _require(c.beta_min <= c.beta_init <= c.beta_max, "beta_init", c.beta_init,
              f"in [beta_min={c.beta_min}, beta_max={c.beta_max}]")

@@ -19,7 +19,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig
+from pgps_jax.agent.config import EvaluationConfig
 from pgps_jax.agent.metrics import returns_key
 from pgps_jax.envs import Env
 from pgps_jax.agent.rollout import EpisodeState, begin_episodes, run_episodes
@@ -28,7 +28,7 @@ from pgps_jax.agent.rollout import EpisodeState, begin_episodes, run_episodes
 @chex.dataclass(frozen=True)
 class EvaluationState:
     """The evaluation under way, carried from generation to generation."""
-    episodes: EpisodeState   # [A·E] its test episodes, E per actor, in EVALUATED_ACTORS order
+    episodes: EpisodeState   # [A·E] its test episodes, E per actor, in the actors' order
     actors: jax.Array        # [A, P] the actors as they were when it began
     step: jax.Array          # [] int32 env steps when it began
     active: jax.Array        # [] bool, begun and not yet reported
@@ -66,8 +66,9 @@ def evaluate(config: EvaluationConfig, env: Env, policy: Callable, actors: jax.A
     return episodes.returns.reshape(num_actors, config.episodes)
 
 
-def _episodes(config: EvaluationConfig, env: Env, key: jax.Array, steps: int) -> EpisodeState:
-    keys = start_keys(key, len(EVALUATED_ACTORS), config.episodes)
+def _episodes(config: EvaluationConfig, env: Env, key: jax.Array, num_actors: int,
+              steps: int) -> EpisodeState:
+    keys = start_keys(key, num_actors, config.episodes)
     return begin_episodes(env, keys, jnp.full((keys.shape[0],), steps))
 
 
@@ -76,7 +77,8 @@ def idle(config: EvaluationConfig, env: Env, actors: jax.Array,
     """No evaluation under way; the first falls due at once. `actors` [A, P] gives the
     shapes."""
     zero = jnp.zeros((), jnp.int32)
-    return EvaluationState(episodes=_episodes(config, env, key, steps=0), actors=actors,
+    return EvaluationState(episodes=_episodes(config, env, key, actors.shape[0], steps=0),
+                           actors=actors,
                            step=zero, active=jnp.asarray(False), next_due=zero, key=key)
 
 
@@ -86,7 +88,8 @@ def begin_if_due(config: EvaluationConfig, env: Env, evaluation: EvaluationState
     last fell due) and none is under way; the next then falls due at the next multiple."""
     begin = (total_steps >= evaluation.next_due) & ~evaluation.active
     fresh = evaluation.replace(
-        episodes=_episodes(config, env, evaluation.key, config.steps), actors=actors,
+        episodes=_episodes(config, env, evaluation.key, actors.shape[0], config.steps),
+        actors=actors,
         step=total_steps.astype(jnp.int32), active=jnp.asarray(True),
         next_due=((total_steps // config.every + 1) * config.every).astype(jnp.int32))
     return jax.tree.map(lambda a, b: jnp.where(begin, a, b), fresh, evaluation)
@@ -105,15 +108,15 @@ def advanced(evaluation: EvaluationState,
     under way and all of its episodes have now ended."""
     done = evaluation.active & ~jnp.any(episodes.alive)
     report = Report(done=done, step=evaluation.step,
-                    returns=episodes.returns.reshape(len(EVALUATED_ACTORS), -1))
+                    returns=episodes.returns.reshape(evaluation.actors.shape[0], -1))
     return evaluation.replace(episodes=episodes, active=evaluation.active & ~done), report
 
 
-def metrics(returns: jax.Array) -> dict:
+def metrics(returns: jax.Array, actors: tuple[str, ...]) -> dict:
     """Per-actor test returns [E] (`metrics.returns_key`) and their mean and std
-    (`metrics.evaluation_metrics`), from `returns` [A, E] in EVALUATED_ACTORS order."""
+    (`metrics.evaluation_metrics`), from `returns` [A, E] of the named `actors`."""
     out = {}
-    for name, actor_returns in zip(EVALUATED_ACTORS, returns):
+    for name, actor_returns in zip(actors, returns, strict=True):
         out[returns_key(name)] = actor_returns
         out[f"eval/{name}_mean"] = jnp.mean(actor_returns)
         out[f"eval/{name}_std"] = jnp.std(actor_returns)

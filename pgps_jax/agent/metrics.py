@@ -1,9 +1,10 @@
 """What a generation reports: every metric's name, meaning and when it holds a value.
 
-`PGPS.learn` returns a flat dict with exactly the keys of `generation_metrics(N)`,
-`EVALUATION_REPORT`, `evaluation_metrics()` and `returns_key(actor)` for each evaluated
-actor; the run's writers (metrics.csv, eval_policies.csv, TensorBoard) take their columns
-and tags from these tables.
+An algorithm's `learn` returns a flat dict with exactly the keys of its
+`generation_metrics()` (PGPS: `generation_metrics(N)`; the baselines: a `chosen` few),
+`EVALUATION_REPORT`, `evaluation_metrics(actors)` and `returns_key(actor)` for each actor it
+evaluates; the run's writers (metrics.csv, eval_policies.csv, TensorBoard) take their
+columns and tags from these tables.
 
 Per generation: every `generation_metrics` entry; one whose `defined_by` names a boolean
 metric holds NaN in the generations where that is false (the TD3 actor's return when it did
@@ -13,8 +14,6 @@ generation; only then do `eval/step` and the `evaluation_metrics` entries hold i
 
 import dataclasses
 from typing import Optional
-
-from pgps_jax.agent.config import EVALUATED_ACTORS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +67,12 @@ def generation_metrics(pop_size: int) -> tuple[Metric, ...]:
     return _HEAD + returns + _TAIL
 
 
+def chosen(keys: tuple[str, ...], pop_size: int) -> tuple[Metric, ...]:
+    """The metrics of `keys`, in that order (an algorithm reporting a part of PGPS's)."""
+    catalogue = {m.key: m for m in generation_metrics(pop_size)}
+    return tuple(catalogue[key] for key in keys)
+
+
 EVALUATION_REPORT = (
     Metric("eval/done", "done", "a test evaluation ended in this generation"),
     Metric("eval/step", "Step", "env steps when the evaluation began (its actors' state)",
@@ -75,15 +80,15 @@ EVALUATION_REPORT = (
 )
 
 
-def evaluation_metrics() -> tuple[Metric, ...]:
-    """Mean and std of each evaluated actor's test returns (Section 5.1)."""
+def evaluation_metrics(actors: tuple[str, ...]) -> tuple[Metric, ...]:
+    """Mean and std of the test returns of each of `actors` (Section 5.1)."""
     return tuple(Metric(f"eval/{actor}_{stat}", f"{actor}_{stat}",
                         f"{stat} of the {actor} actor's test returns", defined_by="eval/done")
-                 for actor in EVALUATED_ACTORS for stat in ("mean", "std"))
+                 for actor in actors for stat in ("mean", "std"))
 
 
 def returns_key(actor: str) -> str:
-    """The key of `actor`'s test returns [E] (`EVALUATED_ACTORS`)."""
+    """The key of `actor`'s test returns [E] (an agent's `evaluated`)."""
     return f"eval/{actor}_returns"
 
 

@@ -1,5 +1,5 @@
 """PGPS (Algorithm 1) as one agent object: `PGPS(config, env)` with pure `init`,
-`generation_step` and `evaluate`, and the `TrainState` pytree that they pass along.
+`generation_step` and `evaluate` (`pgps_jax.agent.base.Agent`) over the `TrainState` pytree.
 
 Everything that changes lives in the TrainState; the configuration, the env and the networks
 are held by the agent, so `agent.generation_step(state)` is one pure function that the caller
@@ -25,36 +25,16 @@ generation reports them (`eval/done`).
 
 import dataclasses
 import functools
-from typing import Callable
 
-import chex
 import jax
 import jax.numpy as jnp
 
 from pgps_jax.agent import buffer as replay
-from pgps_jax.agent import cem, evaluation, qfilter
-from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, PGPSConfig
-from pgps_jax.envs import Env
-from pgps_jax.agent.evaluation import EvaluationState
-from pgps_jax.agent.metrics import population_return_key
-from pgps_jax.agent.networks import actor_flattener, first_q, flatten
-from pgps_jax.agent.rollout import EpisodeState, begin_episodes, play, random_warmup
-from pgps_jax.agent.td3 import TD3, TD3State
-
-
-@chex.dataclass(frozen=True)
-class TrainState:
-    cem: cem.CEMState            # μ, Σ, damping, elite (flat actor vectors [P])
-    td3: TD3State                # actor, twin critic, targets, optimiser states
-    buffer: replay.BufferState   # device replay buffer
-    beta: jax.Array              # [] distance weight β of L^A (eq. 2-3), persists
-    generation: jax.Array        # [] int32 generations completed
-    total_steps: jax.Array       # [] int32 env steps so far, warm-up included
-    evaluation: EvaluationState  # the test evaluation under way, and when the next is due
-    key: jax.Array               # PRNG key
-    kept_population: jax.Array | None = None
-    """[N, P] the population kept until Q-filtering starts (None: resampled every generation;
-    `PGPSConfig.resample_before_q_filter`)."""
+from pgps_jax.agent import cem, qfilter
+from pgps_jax.agent.base import Agent, Played, TrainState
+from pgps_jax.agent.config import PGPSConfig
+from pgps_jax.agent.metrics import Metric, generation_metrics, population_return_key
+from pgps_jax.agent.networks import first_q, flatten
 
 
 def episode_limit(total_steps: jax.Array, config: PGPSConfig) -> jax.Array:
@@ -75,22 +55,8 @@ def fell_behind(td3_return: jax.Array, population_returns: jax.Array,
     return td3_return < threshold
 
 
-@chex.dataclass(frozen=True)
-class Played:
-    """What a generation's episodes leave for its learning phase (`PGPS.play` →
-    `PGPS.learn`)."""
-    population: jax.Array        # [N, P] the actors that played (CEM ranks them)
-    episodes: EpisodeState       # [N'] their episodes, N' = N (+1 with the TD3 probe)
-    transitions: replay.Transition  # [t_max, N'] what they met, row by loop step
-    valid: jax.Array             # [t_max, N'] rows to store in the buffer
-    limit: jax.Array             # [] int32 the episode limit T of this generation
-    td3_turn: jax.Array          # [] bool, the TD3 actor played (every F generations)
-    train_key: jax.Array         # PRNG key of the TD3 updates
-    evaluation: evaluation.Report  # the test evaluation, if one ended in this rollout
-
-
 @dataclasses.dataclass(frozen=True, eq=False)
-class PGPS:
+class PGPS(Agent):
     """The algorithm bound to a configuration, an env and the test evaluation's settings; its
     methods are pure. jit, vmap, donation and sharding are the caller's choice:
 
@@ -111,29 +77,9 @@ class PGPS:
     No time limit is needed: PGPS caps every episode (eq. 4, `PGPSConfig.t_max`).
     """
 
-    config: PGPSConfig
-    env: Env
-    evaluation_config: EvaluationConfig = EvaluationConfig()
-    """When and how long the test episodes run (Section 5.1)."""
-    td3: TD3 = dataclasses.field(init=False)
-    num_params: int = dataclasses.field(init=False)
-    """P, the length of a flat actor vector."""
-    _unflatten: Callable = dataclasses.field(init=False, repr=False)
-
-    def __post_init__(self):
-        td3 = TD3(self.config, self.env.observation_size, self.env.action_size)
-        num_params, unflatten = actor_flattener(td3.actor_net, self.env.observation_size)
-        object.__setattr__(self, "td3", td3)
-        object.__setattr__(self, "num_params", num_params)
-        object.__setattr__(self, "_unflatten", unflatten)
-
-    def policy(self, flat: jax.Array, obs: jax.Array) -> jax.Array:
-        """The deterministic action of the flat actor vector `flat` [P] at `obs`."""
-        return self.td3.actor_net.apply(self._unflatten(flat), obs)
-
-    def actor(self, flat: jax.Array):
-        """The actor network's parameters of a flat actor vector [P]."""
-        return self._unflatten(flat)
+    name = "pgps"
+    evaluated = ("mu", "td3", "elite")
+    """μ, the TD3 actor and the elite; μ is reported."""
 
     # --- init -------------------------------------------------------------------------
     def init(self, key: jax.Array, eval_key: jax.Array | None = None) -> TrainState:
@@ -143,20 +89,11 @@ class PGPS:
         eval_key: start states of every evaluation (the paper uses seed + 100); by default
         derived from `key`. The first generation evaluates the initial μ.
         """
-        config, env = self.config, self.env
+        config = self.config
         td3_key, warmup_key, next_key = jax.random.split(key, 3)
         td3_state = self.td3.init(td3_key)
-        buffer = replay.init(config.buffer_size, env.observation_size, env.action_size)
-        total_steps = 0
-        if config.warmup_steps > 0:
-            steps_per_env = -(-config.warmup_steps // config.pop_size)
-            transitions, valid = random_warmup(env, warmup_key, config.pop_size,
-                                               steps_per_env, config.t_max)
-            buffer = replay.add(buffer, transitions, valid)
-            total_steps = steps_per_env * config.pop_size
-        eval_key = jax.random.fold_in(key, 100) if eval_key is None else eval_key
+        buffer, total_steps = self.random_warmup(warmup_key)
         mean = flatten(td3_state.actor)
-        actors = jnp.stack([mean] * len(EVALUATED_ACTORS))
         search = cem.init(mean, config.sigma_init)
         kept = (None if config.resample_before_q_filter
                 else cem.ask(jax.random.fold_in(key, 1), search, config.pop_size)
@@ -166,16 +103,11 @@ class PGPS:
                           beta=jnp.asarray(config.beta_init, jnp.float32),
                           generation=jnp.zeros((), jnp.int32),
                           total_steps=jnp.asarray(total_steps, jnp.int32),
-                          evaluation=evaluation.idle(self.evaluation_config, env, actors,
-                                                     eval_key),
+                          evaluation=self.idle_evaluation(
+                              jnp.stack([mean] * len(self.evaluated)), key, eval_key),
                           key=next_key, kept_population=kept)
 
     # --- one generation ---------------------------------------------------------------
-    def generation_step(self, state: TrainState) -> tuple[TrainState, dict]:
-        """One generation of Algorithm 1: `play`, then `learn`. Returns the next state and the
-        generation's metrics (see `learn`)."""
-        return self.learn(*self.play(state))
-
     def play(self, state: TrainState) -> tuple[TrainState, Played]:
         """Algorithm 1 lines 6-18: the generation's actors and their episodes, with the test
         episodes of the evaluation under way alongside.
@@ -184,7 +116,7 @@ class PGPS:
         `learn`.
         """
         self.check_state(state)
-        config, env = self.config, self.env
+        config = self.config
         (sample_key, candidate_key, states_key, reset_key, train_key,
          next_key) = jax.random.split(state.key, 6)
         n = config.pop_size
@@ -201,27 +133,11 @@ class PGPS:
         if config.td3_probe:
             actors = jnp.concatenate([population, td3_flat[None]])
             limits = jnp.append(limits, jnp.where(td3_turn, limit, 0))
-        num_rollout = actors.shape[0]
-
-        tests = evaluation.begin_if_due(self.evaluation_config, env, state.evaluation,
-                                        self.evaluated_actors(state), state.total_steps)
-        join = functools.partial(jax.tree.map, lambda a, b: jnp.concatenate([a, b]))
-        episodes = begin_episodes(env, jax.random.split(reset_key, num_rollout), limits)
-        test_slots = jnp.arange(num_rollout + tests.episodes.alive.shape[0]) >= num_rollout
-        hurry = evaluation.must_end_now(tests, state.total_steps + limits.sum())
-        batch, transitions, valid = play(
-            env, self.policy,
-            join(actors, evaluation.repeat_actors(tests.actors, self.evaluation_config.episodes)),
-            join(episodes, tests.episodes), max(config.t_max, self.evaluation_config.steps),
-            drive=~test_slots | hurry)
-        tests, report = evaluation.advanced(
-            tests, jax.tree.map(lambda x: x[num_rollout:], batch))
-        state = state.replace(key=next_key, evaluation=tests)
-        return state, Played(population=population,
-                             episodes=jax.tree.map(lambda x: x[:num_rollout], batch),
-                             transitions=jax.tree.map(lambda x: x[:config.t_max, :num_rollout],
-                                                      transitions),
-                             valid=valid[:config.t_max, :num_rollout], limit=limit,
+        state, episodes, transitions, valid, report = self.rollout(
+            state, actors, limits, reset_key, rows=config.t_max)
+        state = state.replace(key=next_key)
+        return state, Played(population=population, episodes=episodes,
+                             transitions=transitions, valid=valid, limit=limit,
                              td3_turn=td3_turn, train_key=train_key, evaluation=report)
 
     def learn(self, state: TrainState, played: Played) -> tuple[TrainState, dict]:
@@ -261,17 +177,12 @@ class PGPS:
         new_state = state.replace(cem=new_cem, td3=new_td3, buffer=buffer, beta=beta,
                                   generation=generation,
                                   total_steps=state.total_steps + interaction_steps)
-        report = played.evaluation
         metrics = {
-            "gen/generation": generation,
-            "gen/total_steps": new_state.total_steps,
-            "gen/episode_limit": played.limit,
-            "gen/interaction_steps": interaction_steps,
+            **self.counters_and_evaluation(new_state, played),
             "gen/q_filter_active": ((state.total_steps >= config.q_filter_start)
                                     & config.q_filter),
             "pop/return_mean": jnp.mean(returns),
             "pop/return_std": jnp.std(returns),
-            "pop/unstable_episodes": episodes.unstable.sum(),
             "cem/elite_return": jnp.max(returns),
             "cem/var_mean": jnp.mean(new_cem.var),
             "cem/damping": new_cem.damping,
@@ -281,11 +192,11 @@ class PGPS:
             "td3/beta": beta,
             **{population_return_key(i): returns[i] for i in range(n)},
             **losses,
-            "eval/done": report.done,
-            "eval/step": report.step,
-            **evaluation.metrics(report.returns),
         }
         return new_state, metrics
+
+    def generation_metrics(self) -> tuple[Metric, ...]:
+        return generation_metrics(self.config.pop_size)
 
     def population(self, state: TrainState, sample_key: jax.Array, candidate_key: jax.Array,
                     states_key: jax.Array) -> jax.Array:
@@ -293,7 +204,9 @@ class PGPS:
         population kept from the start until Q-filtering starts, if the state keeps one)."""
         config = self.config
         n, half = config.pop_size, config.pop_size // 2
-        population = cem.ask(sample_key, state.cem, n).at[0].set(state.cem.elite)
+        population = cem.ask(sample_key, state.cem, n)
+        if config.elitism:
+            population = population.at[0].set(state.cem.elite)
         if state.kept_population is not None:
             population = jnp.where(state.total_steps >= config.q_filter_start, population,
                                    state.kept_population)
@@ -321,48 +234,7 @@ class PGPS:
             return returns[config.pop_size]
         return jnp.asarray(jnp.nan)
 
-    # --- checks -----------------------------------------------------------------------
-    def check_state(self, state: TrainState) -> None:
-        """Raises ValueError, naming what differs, if `state` (or a batch of states) was made
-        by an agent of another env or network size."""
-        found = {"parameter count": state.cem.mean.shape[-1],
-                 "observation_size": state.buffer.data.obs.shape[-1],
-                 "action_size": state.buffer.data.action.shape[-1]}
-        wanted = {"parameter count": self.num_params,
-                  "observation_size": self.env.observation_size,
-                  "action_size": self.env.action_size}
-        differ = [f"{k} {found[k]} (this agent: {wanted[k]})" for k in found
-                  if found[k] != wanted[k]]
-        if differ:
-            raise ValueError("the TrainState was made for another env or network: "
-                             + ", ".join(differ))
-
-    def _sizes(self) -> str:
-        return (f"observation_size {self.env.observation_size}, action_size "
-                f"{self.env.action_size}, hidden layers {list(self.config.actor_hidden)}")
-
     # --- evaluation -------------------------------------------------------------------
     def evaluated_actors(self, state: TrainState) -> jax.Array:
-        """[A, P]: μ, the TD3 actor and the elite (`EVALUATED_ACTORS`)."""
+        """[3, P]: μ, the TD3 actor and the elite."""
         return jnp.stack([state.cem.mean, flatten(state.td3.actor), state.cem.elite])
-
-    def evaluate(self, actors: "TrainState | jax.Array", key: jax.Array | None = None) -> dict:
-        """Deterministic test episodes (Section 5.1), now: of a state's μ, TD3 actor and
-        elite, or of `actors` [A, P] in `EVALUATED_ACTORS` order.
-
-        Each plays `evaluation_config.episodes` episodes of `.steps` steps, all in one batch,
-        from the start states of `key` — by default a state's evaluation key, giving the
-        episodes of the evaluations that ride along in training.
-        """
-        if isinstance(actors, TrainState):
-            self.check_state(actors)
-            key = actors.evaluation.key if key is None else key
-            actors = self.evaluated_actors(actors)
-        elif key is None:
-            raise ValueError("evaluating an array of actors needs the key of the start states")
-        elif jnp.shape(actors)[-1] != self.num_params:
-            raise ValueError(f"the actors have {jnp.shape(actors)[-1]} parameters but this "
-                             f"agent's actor has {self.num_params} ({self._sizes()})")
-        returns = evaluation.evaluate(self.evaluation_config, self.env, self.policy, actors,
-                                      key)
-        return evaluation.metrics(returns)

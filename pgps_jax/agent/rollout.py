@@ -106,9 +106,13 @@ def begin_episodes(env: Env, reset_keys: jax.Array, step_limits: jax.Array) -> E
 
 def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeState,
          max_steps: int, record: bool = True, gamma: float = 1.0,
-         drive: jax.Array | None = None) -> tuple[EpisodeState, Transition, jax.Array]:
+         drive: jax.Array | None = None, noise: tuple[jax.Array, jax.Array] | None = None
+         ) -> tuple[EpisodeState, Transition, jax.Array]:
     """Steps every live episode until none of those marked in `drive` [B] (default: all) is
     alive; the others advance alongside and may still be alive at the end.
+
+    noise: (key, std [B]): each episode's actions get N(0, std²) noise, clipped to [-1, 1]
+    (the TD3 baseline's exploration); the transitions hold the noisy actions.
 
     Returns the episodes, the transitions [max_steps, B] (row t = the loop's t-th step; empty
     [0, B] unless `record`) and their validity [max_steps, B]. The loop takes at most
@@ -128,6 +132,10 @@ def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeStat
         e = c["episodes"]
         state, alive = e.env, e.alive
         action = act(params, state.obs)
+        if noise is not None:
+            noise_key, std = noise
+            perturbation = jax.random.normal(jax.random.fold_in(noise_key, c["t"]), action.shape)
+            action = jnp.clip(action + std[:, None] * perturbation, -1.0, 1.0)
         nxt = jax.vmap(env.step)(state, action)
         check_step_keeps_the_state(state, nxt)
         sound = _is_sound(nxt)

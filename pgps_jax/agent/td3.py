@@ -8,6 +8,9 @@
 - β rule (eq. 3): β·2 if D > 1.5·D_target, β/2 if D < D_target/1.5, clamped.
 - Schedule (Appendix B): after each generation, `update_blocks` blocks of num_update critic
   updates followed by num_update actor updates; targets move by τ after every update.
+- `train_delayed`: the schedule of TD3 itself (Fujimoto et al., 2018, Algorithm 1), for the
+  TD3 baseline: every update trains the critic; every `policy_delay`-th also the actor, after
+  which both targets move by τ.
 
 Within a block's critic updates π' does not move, and the elite never moves during training,
 so `train` computes the smoothed target actions and the elite's actions of a whole block in
@@ -88,8 +91,9 @@ class TD3:
     def _optimizer(self, lr: float) -> optax.GradientTransformation:
         # PyTorch-style Adam(weight_decay): L2 term added to the clipped gradient, then Adam.
         c = self.config
-        return optax.chain(optax.clip_by_global_norm(c.max_grad_norm),
-                           optax.add_decayed_weights(c.weight_decay), optax.adam(lr))
+        clip = (optax.clip_by_global_norm(c.max_grad_norm) if c.max_grad_norm > 0
+                else optax.identity())
+        return optax.chain(clip, optax.add_decayed_weights(c.weight_decay), optax.adam(lr))
 
     @property
     def actor_optimizer(self) -> optax.GradientTransformation:
@@ -127,9 +131,10 @@ class TD3:
         return batch.reward + c.gamma * batch.discount * jnp.min(next_q, axis=0)
 
     def critic_update(self, state: TD3State, batch: replay.Transition,
-                      next_action: jax.Array) -> tuple[TD3State, jax.Array]:
+                      next_action: jax.Array, move_target: bool = True
+                      ) -> tuple[TD3State, jax.Array]:
         """One clipped double-Q step on `batch` with smoothed target actions `next_action`
-        [B, action_size], then Q' ← τ·Q + (1 − τ)·Q'."""
+        [B, action_size], then (if `move_target`) Q' ← τ·Q + (1 − τ)·Q'."""
         target = jax.lax.stop_gradient(self.critic_targets(state, batch, next_action))
 
         def loss_fn(params):
@@ -139,8 +144,13 @@ class TD3:
         loss, grads = jax.value_and_grad(loss_fn)(state.critic)
         updates, opt = self.critic_optimizer.update(grads, state.critic_opt, state.critic)
         critic = optax.apply_updates(state.critic, updates)
-        critic_target = optax.incremental_update(critic, state.critic_target, self.config.tau)
-        return state.replace(critic=critic, critic_target=critic_target, critic_opt=opt), loss
+        state = state.replace(critic=critic, critic_opt=opt)
+        return (self.move_critic_target(state) if move_target else state), loss
+
+    def move_critic_target(self, state: TD3State) -> TD3State:
+        """Q' ← τ·Q + (1 − τ)·Q'."""
+        return state.replace(critic_target=optax.incremental_update(
+            state.critic, state.critic_target, self.config.tau))
 
     def actor_loss(self, actor_params, critic_params, obs: jax.Array, elite_actions: jax.Array,
                    beta: jax.Array) -> jax.Array:
@@ -230,3 +240,54 @@ class TD3:
         count = jnp.maximum(num_update * c.update_blocks, 1).astype(jnp.float32)
         return state, beta, {"td3/critic_loss": critic_total / count,
                              "td3/actor_loss": actor_total / count}
+
+    def train_delayed(self, state: TD3State, buffer: replay.BufferState, key: jax.Array,
+                      num_update: jax.Array, max_update: int) -> tuple[TD3State, dict]:
+        """TD3's own schedule (Fujimoto et al., 2018, Algorithm 1): `num_update` updates on
+        batches of the buffer, each training the critic toward targets from the current π';
+        updates 0, d, 2d, … (d = `policy_delay`) then train the actor on L^O (eq. 1) on the
+        same batch and move both targets by τ. `max_update` (static) bounds num_update.
+        Returns the new state and the mean losses."""
+        c = self.config
+        delay = c.policy_delay
+        rows_key, noise_key = jax.random.split(key)
+        rows = replay.random_rows(buffer, rows_key, (max_update, c.batch_size))
+        noise = self.smoothing_noise(noise_key, (max_update, c.batch_size, self.action_size))
+        no_elite = jnp.zeros((c.batch_size, self.action_size))
+
+        def policy_step(state, obs):
+            state, loss = self.actor_update(state, obs, no_elite, jnp.zeros(()))
+            return self.move_critic_target(state), loss
+
+        def update(i, carry, actor_turn):
+            state, critic_total, actor_total = carry
+            batch = replay.gather(buffer, rows[i])
+            next_action = self.target_actions(state.actor_target, batch.next_obs, noise[i])
+            state, critic_loss = self.critic_update(state, batch, next_action,
+                                                    move_target=False)
+            if actor_turn is None:          # the turn known only at run time
+                state, actor_loss = jax.lax.cond(
+                    i % delay == 0, policy_step,
+                    lambda state, obs: (state, jnp.zeros((), jnp.float32)), state, batch.obs)
+            elif actor_turn:
+                state, actor_loss = policy_step(state, batch.obs)
+            else:
+                actor_loss = 0.0
+            return state, critic_total + critic_loss, actor_total + actor_loss
+
+        # Chunks of a multiple of d updates: within one, whose turn it is is known statically.
+        unroll = delay * max(1, c.update_unroll // delay)
+
+        def chunk(j, carry):
+            for p in range(unroll):
+                carry = update(j * unroll + p, carry, actor_turn=p % delay == 0)
+            return carry
+
+        zero = jnp.zeros((), jnp.float32)
+        carry = jax.lax.fori_loop(0, num_update // unroll, chunk, (state, zero, zero))
+        state, critic_total, actor_total = jax.lax.fori_loop(
+            num_update // unroll * unroll, num_update,
+            lambda i, carry: update(i, carry, actor_turn=None), carry)
+        actor_updates = (num_update + delay - 1) // delay
+        return state, {"td3/critic_loss": critic_total / jnp.maximum(num_update, 1),
+                       "td3/actor_loss": actor_total / jnp.maximum(actor_updates, 1)}

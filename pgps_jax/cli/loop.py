@@ -1,7 +1,7 @@
 """The training loop of the CLI and the benchmarks: a run's programs, its generations and the
 evaluations that end it, for one seed or a batch of seeds (vmapped).
 
-`Programs.compile` jits `PGPS.init`, `play`, `learn` (state donated) and `evaluate` and
+`Programs.compile` jits an agent's `init`, `play`, `learn` (state donated) and `evaluate` and
 compiles them ahead of time side by side (`compile_ahead`); `generation` runs `play` then
 `learn` and fetches the metrics in one `jax.device_get`; `finish` plays the evaluation under
 way to its end from its start and evaluates the state the run ends with, both with the
@@ -18,11 +18,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pgps_jax.agent.pgps import PGPS, TrainState
+from pgps_jax.agent.base import Agent, TrainState
 from pgps_jax.cli.compile_ahead import compile_ahead
 
 
-def state_shapes(agent: PGPS, key: jax.Array, eval_key: jax.Array, seeds: bool = False):
+def state_shapes(agent: Agent, key: jax.Array, eval_key: jax.Array, seeds: bool = False):
     """The shapes and dtypes of `agent.init(key, eval_key)`'s TrainState (a checkpoint is
     restored into them), found without tracing the warm-up's physics."""
     unfilled = dataclasses.replace(agent, config=agent.config.replace(warmup_steps=0))
@@ -33,13 +33,13 @@ def state_shapes(agent: PGPS, key: jax.Array, eval_key: jax.Array, seeds: bool =
 class Programs:
     """A run's compiled programs (futures until compiled) and its agent."""
 
-    agent: PGPS
+    agent: Agent
     seeds: bool
     """Each program takes a batch of states, keys and actors (vmapped over seeds)."""
     futures: dict[str, Future]
 
     @classmethod
-    def compile(cls, agent: PGPS, key: jax.Array, eval_key: jax.Array, seeds: bool = False,
+    def compile(cls, agent: Agent, key: jax.Array, eval_key: jax.Array, seeds: bool = False,
                 sharding: Optional[jax.sharding.Sharding] = None, restored=None
                 ) -> "Programs":
         """Starts compiling: `init` (unless `restored`) with `play` and `learn` side by side,
@@ -84,7 +84,7 @@ class Generation:
     """What one generation reports, on the host."""
 
     metrics: dict
-    """`PGPS.learn`'s metrics (`pgps_jax.agent.metrics`), as numpy values."""
+    """`learn`'s metrics (`pgps_jax.agent.metrics`), as numpy values."""
     seconds: float
     play_seconds: Optional[float] = None
     """Time to the end of `play` (only when the phases were timed apart)."""
@@ -110,7 +110,7 @@ class Finished:
     """The evaluations that end a run (host values; a leading seed axis with `seeds`)."""
 
     unfinished: Optional[dict]
-    """The evaluation that was under way, played to its end from its start (`PGPS.evaluate`
+    """The evaluation that was under way, played to its end from its start (`evaluate`
     metrics), or None where none was; see `unfinished_active`."""
     unfinished_active: np.ndarray
     """[] or [S] bool: an evaluation was under way (of that seed)."""

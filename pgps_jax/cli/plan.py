@@ -50,9 +50,11 @@ def _checkpointed_config(directory: rundir.RunDir) -> tuple[int, dict]:
 
 
 def _with_new_fields(saved: dict) -> dict:
-    """A checkpoint's configuration with the PGPSConfig fields added since it was written
-    set to their defaults (each new field's default keeps the behaviour from before it)."""
+    """A checkpoint's configuration with the settings added since it was written set to their
+    defaults (each new default keeps the behaviour from before it: PGPS, the PGPSConfig
+    fields' defaults)."""
     saved = copy.deepcopy(saved)
+    saved.setdefault("algo", {"name": "pgps"})
     defaults = {f.name: f.default for f in dataclasses.fields(PGPSConfig)}
     pgps = saved.setdefault("pgps", {})
     for name, value in defaults.items():

@@ -7,10 +7,10 @@ The episode is played on MJX (deterministic actor, start state = the first evalu
 from PRNGKey(seed + 100)); its positions are then drawn with MuJoCo's offscreen renderer.
 
 Arguments (key=value): run (required); out (.gif or .mp4; default <run>/episode.mp4 when
-imageio-ffmpeg is installed, else <run>/episode.gif); policy (mu, td3 or elite; default mu);
-steps (default: the run's eval_steps); width, height (default 480x360, at most 640x480);
-camera (a camera name of the model, default its first one, "track"); max_fps (default 50;
-faster tasks skip frames).
+imageio-ffmpeg is installed, else <run>/episode.gif); policy (an actor the run saved: mu,
+td3 or elite of PGPS; default the one it reports); steps (default: the run's eval_steps);
+width, height (default 480x360, at most 640x480); camera (a camera name of the model, default
+its first one, "track"); max_fps (default 50; faster tasks skip frames).
 
 Headless machines (no display): MuJoCo needs an offscreen OpenGL. This module sets
 MUJOCO_GL=egl when neither MUJOCO_GL nor DISPLAY is set; EGL comes with the system package
@@ -34,7 +34,7 @@ from typing import Optional, Sequence
 import jax
 import numpy as np
 
-from pgps_jax.agent.config import EVALUATED_ACTORS, TASK_NAMES
+from pgps_jax.agent.config import TASK_NAMES
 from pgps_jax.cli.errors import EXIT_OK, UsageError, report
 from pgps_jax.cli.tool_args import load_run, parse_args
 
@@ -124,9 +124,11 @@ def _render(argv: Sequence[str]) -> int:
                              "width": int, "height": int, "camera": str, "max_fps": float},
                       required=("run",))
     settings, config, saved = load_run(args["run"])
-    policy = args.get("policy", "mu")
-    if policy not in EVALUATED_ACTORS:
-        raise UsageError(f"policy={policy!r}: choose one of {', '.join(EVALUATED_ACTORS)}")
+    saved_actors = [k for k in saved if k not in ("generation", "env_steps")]
+    policy = args.get("policy", saved_actors[0])
+    if policy not in saved_actors:
+        raise UsageError(f"policy={policy!r}: the run saved {', '.join(saved_actors)}; "
+                         "choose one of them")
     steps = args.get("steps", settings.eval_steps)
     if steps < 1:
         raise UsageError("steps must be >= 1")
@@ -143,12 +145,13 @@ def _render(argv: Sequence[str]) -> int:
     _import_mujoco()  # before everything that imports mujoco (brax, the envs)
     from pgps_jax.envs import make_env
     from pgps_jax.agent.evaluation import start_keys
-    from pgps_jax.agent.pgps import PGPS
+    from pgps_jax.agent.algorithms import make_agent
     env = make_env(settings.env)
     # the start state of the run's first test episode
     key = start_keys(jax.random.PRNGKey(settings.seed + 100), 1, settings.eval_episodes)[0]
     qpos, rewards, dones = jax.device_get(
-        jax.jit(functools.partial(_episode, PGPS(config, env), steps=steps))(
+        jax.jit(functools.partial(_episode, make_agent(settings.algo, config, env),
+                                  steps=steps))(
             jax.numpy.asarray(saved[policy]), key))
     ended = np.flatnonzero(dones > 0)
     length = int(ended[0]) + 1 if ended.size else steps

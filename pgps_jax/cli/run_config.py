@@ -12,7 +12,7 @@ import pathlib
 import typing
 from typing import Any, Iterable, Mapping, Sequence
 
-from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
+from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, check_for_algorithm
 from pgps_jax.cli.errors import UsageError
 
 CONFIG_DIR = pathlib.Path(__file__).resolve().parents[2] / "configs"
@@ -20,7 +20,7 @@ CONFIG_DIR = pathlib.Path(__file__).resolve().parents[2] / "configs"
 
 PGPS_FIELDS = tuple(f.name for f in dataclasses.fields(PGPSConfig))
 
-IDENTITY_KEYS = (("env.name", "seed", "eval_every", "eval_episodes", "eval_steps")
+IDENTITY_KEYS = (("env.name", "algo.name", "seed", "eval_every", "eval_episodes", "eval_steps")
                  + tuple(f"pgps.{f}" for f in PGPS_FIELDS))
 """Settings that fix a run's trajectory and its evaluation rows: a checkpoint is resumed only
 under the same values. The others (budget, checkpoint period, paths, progress bar) may change."""
@@ -32,6 +32,8 @@ class RunSettings:
 
     env: str
     """Task name (`env=<task>`, `configs/env/<task>.yaml`)."""
+    algo: str
+    """Algorithm (`algo=<name>`, `configs/algo/<name>.yaml`): PGPS or a baseline."""
     seed: int
     """PRNG seed; evaluation uses PRNGKey(seed + 100)."""
     total_steps: int
@@ -63,7 +65,7 @@ class RunSettings:
                                 steps=self.eval_steps)
 
 
-_RUN_KEYS = tuple(f.name for f in dataclasses.fields(RunSettings) if f.name != "env")
+_RUN_KEYS = tuple(f.name for f in dataclasses.fields(RunSettings) if f.name not in ("env", "algo"))
 
 
 def pgps_defaults() -> dict:
@@ -83,8 +85,13 @@ def env_choices() -> list[str]:
     return sorted(p.stem for p in (CONFIG_DIR / "env").glob("*.yaml"))
 
 
+def algo_choices() -> list[str]:
+    """The algorithms with a `configs/algo/<name>.yaml`."""
+    return sorted(p.stem for p in (CONFIG_DIR / "algo").glob("*.yaml"))
+
+
 def _valid_settings_text() -> str:
-    return ("valid settings: env=<task>, " + ", ".join(_RUN_KEYS)
+    return ("valid settings: env=<task>, algo=<name>, " + ", ".join(_RUN_KEYS)
             + ", pgps.<field> (run with --cfg job to see them all)")
 
 
@@ -118,6 +125,15 @@ def check_overrides(args: Sequence[str]) -> None:
         if key == "env.name":
             raise UsageError("set the task with env=<task>, not env.name "
                              f"(choices: {', '.join(env_choices())})")
+        if key == "algo":
+            value = o.value()
+            if isinstance(value, str) and value not in algo_choices():
+                raise UsageError(f"unknown algo {value!r}; choices: "
+                                 f"{', '.join(algo_choices())}")
+            continue
+        if key.startswith("algo."):
+            raise UsageError("set the algorithm with algo=<name>, not algo.name "
+                             f"(choices: {', '.join(algo_choices())})")
         if key == "pgps":
             continue
         if key.startswith("pgps."):
@@ -175,7 +191,7 @@ def pgps_config(values: Mapping[str, Any]) -> PGPSConfig:
 
 def run_settings(values: Mapping[str, Any]) -> RunSettings:
     """The top-level settings (everything but `pgps:`) as validated RunSettings."""
-    known = set(_RUN_KEYS) | {"env", "pgps"}
+    known = set(_RUN_KEYS) | {"env", "algo", "pgps"}
     unknown = sorted(set(values) - known)
     if unknown:
         raise UsageError(f"unknown setting {unknown[0]!r}; {_valid_settings_text()}")
@@ -186,6 +202,10 @@ def run_settings(values: Mapping[str, Any]) -> RunSettings:
     name = env.get("name") if isinstance(env, Mapping) else None
     if name not in env_choices():
         raise UsageError(f"unknown env {name!r}; choices: {', '.join(env_choices())}")
+    algo = values["algo"]
+    algo = algo.get("name") if isinstance(algo, Mapping) else None
+    if algo not in algo_choices():
+        raise UsageError(f"unknown algo {algo!r}; choices: {', '.join(algo_choices())}")
     hints = typing.get_type_hints(RunSettings)
     kwargs = {}
     for key in _RUN_KEYS:
@@ -200,7 +220,7 @@ def run_settings(values: Mapping[str, Any]) -> RunSettings:
                      ("eval_steps", 1), ("checkpoint_every", 1), ("keep_checkpoints", 1)):
         if kwargs[key] < low:
             raise UsageError(f"{key}={kwargs[key]} is invalid: must be an integer >= {low}")
-    return RunSettings(env=name, **kwargs)
+    return RunSettings(env=name, algo=algo, **kwargs)
 
 
 def from_dict(values: Mapping[str, Any]) -> tuple[RunSettings, PGPSConfig]:
@@ -212,7 +232,12 @@ def from_dict(values: Mapping[str, Any]) -> tuple[RunSettings, PGPSConfig]:
 
 
 def require_training(run: RunSettings, config: PGPSConfig) -> None:
-    """UsageError unless the budget leaves steps for generations after the random warm-up."""
+    """UsageError unless the algorithm can run with `config` and the budget leaves steps for
+    generations after the random warm-up."""
+    try:
+        check_for_algorithm(run.algo, config)
+    except ValueError as e:
+        raise UsageError(f"algo={run.algo}: {e}") from None
     if run.total_steps <= config.warmup_steps:
         raise UsageError(f"total_steps={run.total_steps} does not exceed the random warm-up "
                          f"(pgps.warmup_steps={config.warmup_steps}): no generation would train; "

@@ -3,12 +3,14 @@
 A run directory holds
 
     config.yaml          the resolved configuration (Hydra's composed YAML, every field)
-    metrics.csv          one row per generation (`metrics_columns(N)`)
-    eval.csv             the reference format: ,Step,Mean,Std,Reward1..RewardE (μ's episodes)
-    eval_policies.csv    Step and the mean/std return of μ, the TD3 actor and the elite
+    metrics.csv          one row per generation (`metrics_columns`)
+    eval.csv             the reference format: ,Step,Mean,Std,Reward1..RewardE (the episodes
+                         of the actor the algorithm reports: μ; TD3 alone's actor)
+    eval_policies.csv    Step and the mean/std return of each evaluated actor (PGPS: μ, the
+                         TD3 actor and the elite)
     tb/                  TensorBoard event files (x axis: env steps)
     learning_curve.png   redrawn at each evaluation
-    actors.npz           the μ, TD3 and elite actors of the last checkpoint;
+    actors.npz           the evaluated actors of the last checkpoint;
                          at the end of a run, the final ones
     checkpoints/<gen>/   orbax checkpoints (see `pgps_jax.cli.checkpoint`)
     damaged_checkpoints/ checkpoints that failed verification on resume, set aside
@@ -33,7 +35,7 @@ from typing import Any, Mapping, Optional, Sequence
 import numpy as np
 import yaml
 
-from pgps_jax.agent.metrics import evaluation_metrics, generation_metrics
+from pgps_jax.agent.metrics import Metric, evaluation_metrics
 from pgps_jax.cli.errors import UsageError, WriteFailed
 
 CONFIG = "config.yaml"
@@ -49,10 +51,10 @@ METRICS_HOST = ("steps_per_s", "wall_time_s")
 """Host-measured columns (they differ between runs; everything else is deterministic)."""
 
 
-def metrics_columns(pop_size: int) -> list[str]:
-    """The header of metrics.csv for a population of `pop_size`: the generation's metrics
-    (`pgps_jax.agent.metrics`), then the host-measured ones."""
-    return [m.column for m in generation_metrics(pop_size)] + list(METRICS_HOST)
+def metrics_columns(generation: Sequence[Metric]) -> list[str]:
+    """The header of metrics.csv: an algorithm's per-generation metrics (its
+    `generation_metrics()`), then the host-measured ones."""
+    return [m.column for m in generation] + list(METRICS_HOST)
 
 
 def eval_columns(episodes: int) -> list[str]:
@@ -60,9 +62,9 @@ def eval_columns(episodes: int) -> list[str]:
     return ["", "Step", "Mean", "Std"] + [f"Reward{i + 1}" for i in range(episodes)]
 
 
-def eval_policies_columns() -> list[str]:
-    """The header of eval_policies.csv: Step, then mean and std of each evaluated actor."""
-    return ["Step"] + [m.column for m in evaluation_metrics()]
+def eval_policies_columns(actors: Sequence[str]) -> list[str]:
+    """The header of eval_policies.csv: Step, then mean and std of each of `actors`."""
+    return ["Step"] + [m.column for m in evaluation_metrics(tuple(actors))]
 
 
 def cell(value: Any) -> str:
@@ -264,7 +266,8 @@ class RunDir:
 
 def save_actors(path: pathlib.Path, generation: int, env_steps: int,
                 **flat_actors: np.ndarray) -> None:
-    """The actors as flat parameter vectors (`mu`, `td3`, `elite`) in an .npz, atomically.
+    """The actors as flat parameter vectors (keyed by name: `mu`, `td3`, `elite`) in an
+    .npz, atomically.
 
     Turn a vector into the flax parameter tree with `networks.actor_flattener`.
     """
@@ -276,7 +279,7 @@ def save_actors(path: pathlib.Path, generation: int, env_steps: int,
 
 
 def load_actors(path: pathlib.Path) -> dict:
-    """{"mu": [P], "td3": [P], "elite": [P], "generation": int, "env_steps": int}."""
+    """{actor name: [P] for each saved actor, "generation": int, "env_steps": int}."""
     if not path.exists():
         raise UsageError(f"no saved actor {path}: the run has not written a checkpoint yet")
     with np.load(path) as data:
@@ -285,9 +288,13 @@ def load_actors(path: pathlib.Path) -> dict:
     return out
 
 
+ACTOR_LABELS = {"mu": "μ (CEM mean)", "td3": "TD3 actor", "elite": "elite"}
+
+
 def plot_learning_curve(path: pathlib.Path, rows: Sequence[Mapping[str, Any]],
-                        title: str) -> None:
-    """Draws eval_policies rows (Step, mu_mean, mu_std, td3_mean, elite_mean) to a PNG."""
+                        actors: Sequence[str], title: str) -> None:
+    """Draws eval_policies rows (Step, <actor>_mean, <actor>_std) to a PNG: the first of
+    `actors` (the reported one) with its std band, the others as lines."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -295,11 +302,13 @@ def plot_learning_curve(path: pathlib.Path, rows: Sequence[Mapping[str, Any]],
     steps = np.array([float(r["Step"]) for r in rows])
     column = lambda name: np.array([float(r[name]) for r in rows])
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=100)
-    mu, mu_std = column("mu_mean"), column("mu_std")
-    ax.plot(steps, mu, color="C0", marker="o", markersize=3, label="μ (CEM mean)")
-    ax.fill_between(steps, mu - mu_std, mu + mu_std, color="C0", alpha=0.2)
-    ax.plot(steps, column("td3_mean"), color="C1", linewidth=1, label="TD3 actor")
-    ax.plot(steps, column("elite_mean"), color="C2", linewidth=1, label="elite")
+    reported, *others = actors
+    mean, std = column(f"{reported}_mean"), column(f"{reported}_std")
+    ax.plot(steps, mean, color="C0", marker="o", markersize=3, label=ACTOR_LABELS[reported])
+    ax.fill_between(steps, mean - std, mean + std, color="C0", alpha=0.2)
+    for i, actor in enumerate(others, start=1):
+        ax.plot(steps, column(f"{actor}_mean"), color=f"C{i}", linewidth=1,
+                label=ACTOR_LABELS[actor])
     ax.set_xlabel("env steps")
     ax.set_ylabel("return (deterministic test episodes)")
     ax.set_title(title)

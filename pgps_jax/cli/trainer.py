@@ -1,7 +1,7 @@
 """The host side of `python -m pgps_jax.train` (see `pgps_jax.cli.train`): the shared loop
 (`pgps_jax.cli.loop`) with the run's logs, checkpoints and progress bar.
 
-Each generation runs the compiled phases (`PGPS.play`, then `PGPS.learn`, the state
+Each generation runs the compiled phases (`play`, then `learn` of the run's agent, the state
 donated), fetches the metrics with one `jax.device_get`, then writes the logs (the columns of
 `pgps_jax.agent.metrics`) and checkpoints. The test evaluation runs inside the generations,
 alongside the rollouts (`pgps_jax.agent.evaluation`): it falls due whenever the env steps
@@ -9,7 +9,7 @@ have reached a multiple of `eval_every` (and in the first generation, after the 
 tests the actors of the state that generation starts from, and is written, under that state's
 step count, by the generation in which its episodes have ended. After the last generation,
 the evaluation still under way is played to its end from its start and the final state is
-evaluated, both by `PGPS.evaluate` (`loop.finish`). Checkpoints are written every
+evaluated, both by the agent's `evaluate` (`loop.finish`). Checkpoints are written every
 `checkpoint_every` generations, at the end and on SIGINT / SIGTERM. The programs compile
 ahead of time side by side (`compile_ahead`): `init` with the two phases, then `evaluate` in
 the background while the run trains. Nothing here runs inside jit. The run directory's
@@ -27,13 +27,16 @@ import numpy as np
 from tqdm import tqdm
 
 from pgps_jax.agent import metrics as schema
-from pgps_jax.agent.config import EVALUATED_ACTORS
-from pgps_jax.agent.pgps import PGPS
+from pgps_jax.agent.algorithms import make_agent
+from pgps_jax.agent.base import Agent
 from pgps_jax.cli import loop
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.checkpoint import Checkpoints
 from pgps_jax.cli.errors import RunFailed, UsageError, WriteFailed
 from pgps_jax.cli.plan import Plan
+
+_SHORT = {"mu": "μ", "td3": "TD3", "elite": "elite"}
+"""How the terminal names the evaluated actors."""
 
 # Checked first, so the error names the loss when a NaN has spread to other metrics.
 _PRIORITY_METRICS = ("td3/critic_loss", "td3/actor_loss", "td3/beta")
@@ -86,18 +89,19 @@ class StopRequest:
 class Trainer:
     """The loop's state on the host: logs, checkpoints, counters, progress bar."""
 
-    def __init__(self, p: Plan, agent: PGPS):
+    def __init__(self, p: Plan, agent: Agent):
         self.p, self.run, self.config, self.dir = p, p.run, p.config, p.directory
         self.agent = agent
+        self.reported = agent.evaluated[0]
         self.programs: Optional[loop.Programs] = None
-        self.columns = schema.generation_metrics(self.config.pop_size)
+        self.columns = agent.generation_metrics()
         self.checkpoints = Checkpoints(self.dir.checkpoints, self.run.keep_checkpoints)
         self.metrics_log = rundir.CsvLog(self.dir / rundir.METRICS,
-                                         rundir.metrics_columns(self.config.pop_size))
+                                         rundir.metrics_columns(self.columns))
         self.eval_log = rundir.CsvLog(self.dir / rundir.EVAL,
                                       rundir.eval_columns(agent.evaluation_config.episodes))
         self.policies_log = rundir.CsvLog(self.dir / rundir.EVAL_POLICIES,
-                                          rundir.eval_policies_columns())
+                                          rundir.eval_policies_columns(agent.evaluated))
         self.logs = {rundir.METRICS: self.metrics_log, rundir.EVAL: self.eval_log,
                      rundir.EVAL_POLICIES: self.policies_log}
         self.tensorboard = None
@@ -151,7 +155,8 @@ class Trainer:
     def _open_bar(self):
         self.bar = tqdm(total=self.run.total_steps, initial=min(self.total, self.run.total_steps),
                         unit="step", unit_scale=True, dynamic_ncols=True, smoothing=0.3,
-                        disable=not self.run.progress, desc=f"{self.run.env} seed {self.run.seed}")
+                        disable=not self.run.progress,
+                        desc=f"{self.run.algo} {self.run.env} seed {self.run.seed}")
         self.bar.set_postfix_str(self._last_eval_text(), refresh=False)
 
     def elapsed(self) -> float:
@@ -204,26 +209,32 @@ class Trainer:
         if not self.eval_rows:
             return "eval -"
         last = self.eval_rows[-1]
-        return f"eval {float(last['mu_mean']):.1f} @ {int(float(last['Step'])):,}"
+        return (f"eval {float(last[f'{self.reported}_mean']):.1f} @ "
+                f"{int(float(last['Step'])):,}")
 
     def _record_evaluation(self, step: int, e: Mapping[str, Any]):
-        """Writes the test returns of μ, the TD3 actor and the elite at env step `step`."""
+        """Writes the test returns of the evaluated actors at env step `step` (eval.csv: the
+        reported actor's)."""
         if self.eval_rows and int(float(self.eval_rows[-1]["Step"])) == step:
             return  # already recorded (a finished run extended with a larger total_steps)
-        self.eval_log.write([len(self.eval_rows), step, e["eval/mu_mean"], e["eval/mu_std"],
-                             *e[schema.returns_key("mu")]])
-        row = [step] + [e[m.key] for m in schema.evaluation_metrics()]
+        actors, reported = self.agent.evaluated, self.reported
+        self.eval_log.write([len(self.eval_rows), step, e[f"eval/{reported}_mean"],
+                             e[f"eval/{reported}_std"], *e[schema.returns_key(reported)]])
+        evaluated = schema.evaluation_metrics(actors)
+        row = [step] + [e[m.key] for m in evaluated]
         self.policies_log.write(row)
-        self.eval_rows.append(dict(zip(rundir.eval_policies_columns(), row)))
-        self.tensorboard.scalars({m.key: e[m.key] for m in schema.evaluation_metrics()}, step)
-        rundir.plot_learning_curve(self.dir / rundir.CURVE, self.eval_rows,
-                                   f"PGPS {self.run.env}, seed {self.run.seed}")
+        self.eval_rows.append(dict(zip(rundir.eval_policies_columns(actors), row)))
+        self.tensorboard.scalars({m.key: e[m.key] for m in evaluated}, step)
+        rundir.plot_learning_curve(self.dir / rundir.CURVE, self.eval_rows, actors,
+                                   f"{self.run.algo.upper()} {self.run.env}, "
+                                   f"seed {self.run.seed}")
         self.bar.set_postfix_str(f"gen {self.generation}, " + self._last_eval_text(),
                                  refresh=False)
-        tqdm.write(f"steps {step:>10,}  eval μ "
-                   f"{float(e['eval/mu_mean']):10.2f} ± {float(e['eval/mu_std']):8.2f}   "
-                   f"TD3 {float(e['eval/td3_mean']):10.2f}   elite "
-                   f"{float(e['eval/elite_mean']):10.2f}")
+        first, *others = actors
+        tqdm.write(f"steps {step:>10,}  eval {_SHORT[first]} "
+                   f"{float(e[f'eval/{first}_mean']):10.2f} ± {float(e[f'eval/{first}_std']):8.2f}"
+                   + "".join(f"   {_SHORT[a]} {float(e[f'eval/{a}_mean']):10.2f}"
+                             for a in others))
 
     # --- checkpoints ------------------------------------------------------------------
     def kept(self) -> str:
@@ -246,8 +257,8 @@ class Trainer:
         self.save_actors(state)
 
     def save_actors(self, state):
-        """The μ, TD3 and elite actors of `state` as flat vectors in actors.npz."""
-        actors = dict(zip(EVALUATED_ACTORS,
+        """The evaluated actors of `state` as flat vectors in actors.npz."""
+        actors = dict(zip(self.agent.evaluated,
                           jax.device_get(self.agent.evaluated_actors(state))))
         rundir.save_actors(self.dir / rundir.ACTORS, self.generation, self.total, **actors)
 
@@ -271,7 +282,7 @@ def train(p: Plan) -> str:
     except ValueError as e:
         raise UsageError(str(e)) from None
     p.directory.write_config(p.resolved)
-    trainer = Trainer(p, PGPS(p.config, env, p.run.evaluation))
+    trainer = Trainer(p, make_agent(p.run.algo, p.config, env, p.run.evaluation))
     failed = None
     try:
         return _run(trainer, p)
@@ -307,8 +318,9 @@ def _run(trainer: Trainer, p: Plan) -> str:
               f"(or resume={trainer.dir.path}).", file=sys.stderr)
         return stop.requested
     last = trainer.eval_rows[-1] if trainer.eval_rows else None
-    summary = (f"final μ return {float(last['mu_mean']):.2f} ± {float(last['mu_std']):.2f}"
-               if last else "no evaluation")
+    reported = trainer.reported
+    summary = (f"final {_SHORT[reported]} return {float(last[f'{reported}_mean']):.2f} ± "
+               f"{float(last[f'{reported}_std']):.2f}" if last else "no evaluation")
     print(f"done: {trainer.total:,} env steps in {trainer.generation} generations, "
           f"{trainer.elapsed():.0f} s of training; {summary}; outputs in {trainer.dir.path}")
     return "done"

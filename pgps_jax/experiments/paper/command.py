@@ -24,7 +24,7 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, PGPSConfig, for_task
+from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, check_for_algorithm, for_task
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import EXIT_INTERRUPTED, UsageError, print_error, report
 from pgps_jax.cli.run_config import coerce
@@ -63,7 +63,9 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
             raise UsageError(f"--set {', '.join(clash)}: the {experiment} cell {cell.task} "
                              f"{cell.config} sets it itself")
         try:
-            config = for_task(cell.task, **dict(cell.overrides), **dict(budget.overrides))
+            config = for_task(cell.task, cell.algo, **dict(cell.overrides),
+                              **dict(budget.overrides))
+            check_for_algorithm(cell.algo, config)
         except ValueError as e:
             raise UsageError(f"{cell.task} {cell.config}: {e}") from None
         if budget.steps <= config.warmup_steps:
@@ -94,11 +96,12 @@ def require_reference(reference: pathlib.Path) -> None:
 
 
 def write_final_returns(path: pathlib.Path, results: list[dict]) -> None:
-    """One row per done cell and seed: the final test return of μ, the TD3 actor and the
-    elite."""
-    header = ["task", "config", "seed", "env_steps"] + [f"{a}_final" for a in EVALUATED_ACTORS]
+    """One row per done cell and seed: the final test return of each actor its algorithm
+    evaluates (μ, the TD3 actor, the elite; empty where it has none)."""
+    actors = list(dict.fromkeys(a for r in results for a in r["final"]))
+    header = ["task", "config", "seed", "env_steps"] + [f"{a}_final" for a in actors]
     rows = [[r["task"], r["config"], seed, r["env_steps"][i],
-             *(r["final"][a][i] for a in EVALUATED_ACTORS)]
+             *(r["final"][a][i] if a in r["final"] else "" for a in actors)]
             for r in results for i, seed in enumerate(r["seeds"])]
     path.parent.mkdir(parents=True, exist_ok=True)
     rundir.write_csv(path, header, rows)

@@ -3,7 +3,8 @@
 A cell's configuration is the paper's for its task (`for_task`, Tables 3 and 4) with a few
 fields replaced; its seeds run vmapped in one program (`pgps_jax.experiments.paper.runner`).
 
-- `figure4`: PGPS on the five tasks (Figure 4 and the table of final returns).
+- `figure4`: PGPS and the baselines (CEM, TD3, CEM-RL; `pgps_jax.agent.algorithms`) on the
+  five tasks (Figure 4 and the table of final returns); a configuration per algorithm.
 - `table1`: the five cumulative models of Table 1 on halfcheetah, walker2d and ant: Base, then
   + PG→EA, + EA→PG, + Q-critic filtering, + increasing evaluation steps (= PGPS).
 - `figure5`: swimmer, the TD3 actor with and without EA guidance (EA→PG).
@@ -14,7 +15,7 @@ fields replaced; its seeds run vmapped in one program (`pgps_jax.experiments.pap
 import dataclasses
 from typing import Any, Mapping
 
-from pgps_jax.agent.config import TASK_NAMES
+from pgps_jax.agent.config import ALGORITHMS, TASK_NAMES
 
 
 @dataclasses.dataclass(frozen=True)
@@ -25,7 +26,9 @@ class Cell:
     config: str
     """The configuration's name: a folder of the results."""
     overrides: Mapping[str, Any]
-    """PGPSConfig fields replacing the paper's for this task."""
+    """PGPSConfig fields replacing the algorithm's for this task."""
+    algo: str = "pgps"
+    """The algorithm (`ALGORITHMS`), with its configuration for the task (`for_task`)."""
 
 
 _BASE = dict(pg_guides_ea=False, ea_guides_pg=False, q_filter=False, increasing_steps=False)
@@ -38,7 +41,7 @@ _CUMULATIVE = (
 )
 
 EXPERIMENTS: dict[str, tuple[Cell, ...]] = {
-    "figure4": tuple(Cell(task, "pgps", {}) for task in TASK_NAMES),
+    "figure4": tuple(Cell(task, algo, {}, algo) for task in TASK_NAMES for algo in ALGORITHMS),
     "table1": tuple(Cell(task, name, overrides)
                     for task in ("halfcheetah", "walker2d", "ant")
                     for name, overrides in _CUMULATIVE),

@@ -1,12 +1,13 @@
-"""An experiment's report from its cells' results: μ's learning curves beside the authors'
-published ones, and the final returns with their interquartile mean (IQM) and its 95 %
+"""An experiment's report from its cells' results: the learning curves of the actor each
+algorithm reports (μ; TD3 alone's actor) beside the authors' published ones, and the final returns with their interquartile mean (IQM) and its 95 %
 stratified-bootstrap confidence interval (Agarwal et al., 2021, "Deep reinforcement learning
 at the edge of the statistical precipice": rliable's `StratifiedBootstrap`, percentile
 interval).
 
-Writes into `<out>/<experiment>/`: `<task>.png` (the test return of μ against env steps, mean ±
-std over the seeds, every configuration run on the task and the paper's PGPS; of the TD3 actor
-in `figure5`, as the paper's Figure 5), `final_returns.md` (per task and configuration: the
+Writes into `<out>/<experiment>/`: `<task>.png` (the test return against env steps, mean ± std
+over the seeds, of every configuration run on the task — and of any other folder there with a
+`result.json`, the peers of `benchmarks.peers` — and the paper's PGPS; of the TD3 actor in
+`figure5`, as the paper's Figure 5), `final_returns.md` (per task and configuration: the
 env steps, the final return of each seed, mean ± std, IQM [95 % CI], and the paper's); for
 `figure6` also `<task>_<config>_q_filter.png` (Figure 6: per 10k env steps, the mean return of
 the Q-filtered actors and of the randomly sampled ones), and for `table1` also `table1.md`
@@ -37,8 +38,9 @@ BOOTSTRAP_SEED = 0
 interval."""
 REPORT = "final_returns.md"
 REPORTED_ACTOR = {"figure5": "td3"}
-"""The actor whose curves and final returns an experiment reports (μ where not named)."""
-ACTOR_NAMES = {"mu": "μ", "td3": "the TD3 actor"}
+"""The actor whose curves and final returns an experiment reports, where it is not the one
+each algorithm reports (μ; TD3 alone's actor)."""
+ACTOR_NAMES = {None: "μ (TD3 alone: its actor)", "td3": "the TD3 actor"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,25 +113,28 @@ def sample_std(values: np.ndarray, axis: int = 0) -> np.ndarray:
     return values.std(axis=axis, ddof=1) if values.shape[axis] > 1 else values.std(axis=axis)
 
 
-def _seed_files(directory: pathlib.Path, actor: str) -> list[pathlib.Path]:
-    """The curves of `actor` in a cell's folder, in the order of their seeds."""
+def _seed_files(directory: pathlib.Path, actor: Optional[str]) -> list[pathlib.Path]:
+    """The curves of `actor` (None: the reported actor) in a cell's folder, in the order of
+    their seeds."""
+    actor = actor or ""
     seeds = sorted(int(p.stem[4:]) for p in directory.glob("seed*.csv") if p.stem[4:].isdigit())
     return [directory / seed_file(seed, actor) for seed in seeds
             if (directory / seed_file(seed, actor)).exists()]
 
 
-def _ours(directory: pathlib.Path, actor: str = "mu"
+def _ours(directory: pathlib.Path, actor: Optional[str] = None
           ) -> tuple[Optional[Curves], Optional[Finals], Optional[dict]]:
-    """A cell's curves of `actor` (those written so far) and, once it is done, its final
-    returns and its `result.json`."""
+    """A cell's curves of `actor` (None: the actor its algorithm reports; those written so
+    far) and, once it is done, its final returns and its `result.json`."""
     read = [read_curve(p) for p in _seed_files(directory, actor)]
     curves = on_grid(read) if read and all(len(s) for s, _ in read) else None
     path = directory / "result.json"
     if not path.exists():
         return curves, None, None
     result = json.loads(path.read_text())
+    reported = actor or next(iter(result["final"]))  # the algorithm's evaluated actors, in order
     return curves, Finals(f"ours: {result['config']}", result["steps"],
-                          np.array(result["final"][actor])), result
+                          np.array(result["final"][reported])), result
 
 
 def _paper(reference: pathlib.Path, task: str) -> tuple[Optional[Curves], Optional[Finals]]:
@@ -151,19 +156,21 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
     import matplotlib.pyplot as plt
 
     root = out / experiment
-    actor = REPORTED_ACTOR.get(experiment, "mu")
+    actor = REPORTED_ACTOR.get(experiment)
     tasks = list(dict.fromkeys(c.task for c in cells(experiment)))
     key = jax.random.PRNGKey(BOOTSTRAP_SEED)
     written, table, done = [], [], {}
     for task in tasks:
         configs = [c.config for c in cells(experiment, (task,))]
+        configs += sorted(d.name for d in (root / task).glob("*/")  # peers (benchmarks.peers)
+                          if d.name not in configs and (d / "result.json").exists())
         ours = {config: _ours(root / task / config, actor) for config in configs
                 if (root / task / config).is_dir()}
         if not ours:
             continue
         done.update({(task, config): result for config, (_, _, result) in ours.items()
                      if result is not None})
-        paper = _paper(reference, task) if actor == "mu" else (None, None)
+        paper = _paper(reference, task) if actor is None else (None, None)
         fig, ax = plt.subplots(figsize=(6, 4))
         for label, (curves, _) in [*((f"ours: {c}", v[:2]) for c, v in ours.items()),
                                    ("paper: PGPS", paper)]:

@@ -13,12 +13,12 @@ generations past it: their curves keep the evaluations that began within the bud
 `result.json` gives the env steps of the state each seed's final evaluation tested.
 
 A cell's folder holds, per seed, `seed<k>.csv`: its test evaluations up to the budget in the
-authors' format (Step, Mean, Std, Reward1..RewardE of μ: the columns of a training run's
-`eval.csv`), the same of the TD3 actor and of the elite in `seed<k>_td3.csv` and
-`seed<k>_elite.csv` (Figure 5), and
-`seed<k>_generations.csv`: per generation, the return of every slot of the population (Figure
-6: the Q-filtered slots against the sampled ones); `result.json` once
-the cell is done (the final evaluation of μ, the TD3 actor and the elite on fresh start states
+authors' format (Step, Mean, Std, Reward1..RewardE of the actor the algorithm reports: μ, or
+TD3's actor for TD3 alone; the columns of a training run's `eval.csv`), the same of each other
+evaluated actor in `seed<k>_<actor>.csv` (PGPS: the TD3 actor's and the elite's, Figure 5),
+and `seed<k>_generations.csv`: per generation, the return of every slot of the population
+(Figure 6: the Q-filtered slots against the sampled ones); `result.json` once the cell is
+done (the final evaluation of every evaluated actor on fresh start states
 PRNGKey(k + 10,000), the settings, the wall-clock and the device); and `checkpoints/` while
 it runs. A cell is continued or counted as done only under the settings it was started with.
 """
@@ -35,10 +35,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pgps_jax.agent.config import EVALUATED_ACTORS, EvaluationConfig, for_task
-from pgps_jax.agent.metrics import (Metric, generation_metrics, population_return_key,
-                                    returns_key)
-from pgps_jax.agent.pgps import PGPS
+from pgps_jax.agent.algorithms import make_agent
+from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, for_task
+from pgps_jax.agent.metrics import Metric, population_return_key, returns_key
 from pgps_jax.cli import loop
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.checkpoint import Checkpoints
@@ -69,10 +68,10 @@ class Budget:
     """(name, value) keyword arguments of `make_env` for every cell (e.g. physics settings)."""
 
 
-def seed_file(seed: int, actor: str = "mu") -> str:
-    """The curve of `actor` (one of EVALUATED_ACTORS) of seed `seed`: μ's in `seed<k>.csv`, the
-    others' in `seed<k>_<actor>.csv`."""
-    return f"seed{seed}.csv" if actor == "mu" else f"seed{seed}_{actor}.csv"
+def seed_file(seed: int, actor: str = "") -> str:
+    """The curve of seed `seed`: the reported actor's (`actor` empty) in `seed<k>.csv`, another
+    evaluated actor's in `seed<k>_<actor>.csv`."""
+    return f"seed{seed}_{actor}.csv" if actor else f"seed{seed}.csv"
 
 
 def seed_mesh() -> jax.sharding.Mesh:
@@ -91,16 +90,17 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     """Runs `cell` to `budget.steps` in `directory` (continuing its checkpoint if it has one)
     and returns its result (as `result.json` holds it). A done cell is not run again.
     `on_generation(generation, env_steps [seeds])` is called after every generation."""
-    config = for_task(cell.task, **dict(cell.overrides), **dict(budget.overrides))
+    config = for_task(cell.task, cell.algo, **dict(cell.overrides), **dict(budget.overrides))
     mesh = seed_mesh()
-    settings = _settings(config, budget, mesh.size)
+    settings = _settings(cell.algo, config, budget, mesh.size)
     with rundir.writing(directory):
         directory.mkdir(parents=True, exist_ok=True)
     if (directory / RESULT).exists():
         result = json.loads((directory / RESULT).read_text())
         _require_same(directory, result["settings"], settings)
         return result
-    agent = PGPS(config, make_env(cell.task, **dict(budget.env)), budget.evaluation)
+    agent = make_agent(cell.algo, config, make_env(cell.task, **dict(budget.env)),
+                       budget.evaluation)
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seeds"))
     batch = padded_seeds(budget.seeds, mesh.size)
     numbers = jnp.arange(1, batch + 1)
@@ -114,7 +114,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                                              sharding=sharding)
             state = programs["init"](keys, eval_keys)
             generation, elapsed = 0, 0.0
-            curves = {actor: [[] for _ in range(batch)] for actor in EVALUATED_ACTORS}
+            curves = {actor: [[] for _ in range(batch)] for actor in agent.evaluated}
             populations = [[] for _ in range(batch)]
         else:
             meta = checkpoints.latest_meta()[1]
@@ -130,7 +130,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             programs = loop.Programs.compile(agent, keys, eval_keys, seeds=True,
                                              sharding=sharding, restored=shapes)
         steps = np.asarray(jax.device_get(state.total_steps))
-        population_keys = [m.key for m in _population_metrics(config)]
+        population_keys = [m.key for m in _population_metrics(agent)]
         while steps[:budget.seeds].min() < budget.steps:
             state, done = loop.generation(programs, state)
             generation += 1
@@ -146,7 +146,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                     "settings": settings, "curves": curves, "populations": populations,
                     "elapsed_s": elapsed + time.perf_counter() - start})
                 _write_curves(directory, curves, budget)
-                _write_populations(directory, populations, config, budget)
+                _write_populations(directory, populations, agent, budget)
             if on_generation is not None:
                 on_generation(generation, steps[:budget.seeds])
         final_keys = jax.device_put(
@@ -157,12 +157,13 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     for seed in np.flatnonzero(finished.unfinished_active):  # played from its start
         _add_evaluation(curves, finished.unfinished, seed, int(finished.unfinished_step[seed]))
     _write_curves(directory, curves, budget)
-    _write_populations(directory, populations, config, budget)
-    result = {"task": cell.task, "config": cell.config, "overrides": dict(cell.overrides),
+    _write_populations(directory, populations, agent, budget)
+    result = {"task": cell.task, "config": cell.config, "algo": cell.algo,
+              "overrides": dict(cell.overrides),
               "steps": budget.steps, "seeds": list(range(1, budget.seeds + 1)),
               "env_steps": steps[:budget.seeds].tolist(), "generations": generation,
               "final": {actor: np.asarray(finished.final[f"eval/{actor}_mean"])
-                        [:budget.seeds].tolist() for actor in EVALUATED_ACTORS},
+                        [:budget.seeds].tolist() for actor in agent.evaluated},
               "wall_s": elapsed + time.perf_counter() - start,
               "device": f"{mesh.size} × {jax.devices()[0].device_kind}", "settings": settings}
     rundir.write_atomic(directory / RESULT, json.dumps(result, indent=1).encode())
@@ -170,16 +171,18 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     return result
 
 
-def _settings(config, budget: Budget, devices: int) -> dict:
+def _settings(algo: str, config, budget: Budget, devices: int) -> dict:
     """What a cell's results depend on (JSON values)."""
     return json.loads(json.dumps({
-        "config": dataclasses.asdict(config),
+        "algo": algo, "config": dataclasses.asdict(config),
         "evaluation": dataclasses.asdict(budget.evaluation), "env": dict(budget.env),
         "steps": budget.steps, "seeds": budget.seeds, "devices": devices}))
 
 
-_ADDED_SETTINGS = {"env": {}}
+_ADDED_SETTINGS = {"env": {}, "algo": "pgps"}
 """Settings that cells started before they existed ran under."""
+_ADDED_CONFIG_FIELDS = ("elitism", "policy_delay", "exploration_noise")
+"""PGPSConfig fields that cells started before they existed ran under at their defaults."""
 
 
 def _require_same(directory: pathlib.Path, saved: dict, now: dict) -> None:
@@ -187,32 +190,36 @@ def _require_same(directory: pathlib.Path, saved: dict, now: dict) -> None:
     saved = {**_ADDED_SETTINGS, **saved}
     differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now" for key in now
               if key != "config" and saved.get(key) != now[key]]
-    differ += [f"config.{k}: {saved['config'].get(k)!r} there, {v!r} now"
-               for k, v in now["config"].items() if saved["config"].get(k) != v]
+    added = {f.name: f.default for f in dataclasses.fields(PGPSConfig)
+             if f.name in _ADDED_CONFIG_FIELDS}
+    saved_config = {**added, **saved["config"]}
+    differ += [f"config.{k}: {saved_config.get(k)!r} there, {v!r} now"
+               for k, v in now["config"].items() if saved_config.get(k) != v]
     if differ:
         raise UsageError(f"{directory} holds this cell run with other settings; use another "
                          "--out, or remove the folder to run it again. Differences:\n  "
                          + "\n  ".join(differ))
 
 
-def _population_metrics(config) -> list[Metric]:
+def _population_metrics(agent) -> list[Metric]:
     """The per-generation metrics of `seed<k>_generations.csv`, after the generation number:
     env steps, episode limit, whether the critic chose slots [N/2, N) and the TD3 actor played
     slot N−1, the return of every slot (slot 0 the elite; Figure 6 compares the Q-filtered
     slots with the sampled ones), and what shapes the next population: the generation's
-    elite and TD3 returns, the guided loss and β (eq. 3), Σ's mean and damping."""
-    schema = {m.key: m for m in generation_metrics(config.pop_size)}
+    elite and TD3 returns, the guided loss and β (eq. 3), Σ's mean and damping; those of them
+    that the agent reports."""
+    schema = {m.key: m for m in agent.generation_metrics()}
     keys = ["gen/total_steps", "gen/episode_limit", "gen/q_filter_active", "td3/in_population",
-            *(population_return_key(i) for i in range(config.pop_size)),
+            *(population_return_key(i) for i in range(agent.config.pop_size)),
             "cem/elite_return", "td3/return", "td3/guided_loss", "td3/beta", "cem/var_mean",
             "cem/damping"]
-    return [schema[key] for key in keys]
+    return [schema[key] for key in keys if key in schema]
 
 
-def _write_populations(directory: pathlib.Path, populations: list, config,
+def _write_populations(directory: pathlib.Path, populations: list, agent,
                        budget: Budget) -> None:
     """seed<k>_generations.csv of every seed of the budget (`_population_metrics`)."""
-    header = ["generation"] + [m.column for m in _population_metrics(config)]
+    header = ["generation"] + [m.column for m in _population_metrics(agent)]
     for seed, rows in enumerate(populations[:budget.seeds], start=1):
         rundir.write_csv(directory / f"seed{seed}_generations.csv", header, rows)
 
@@ -227,11 +234,12 @@ def _add_evaluation(curves: dict, metrics: dict, seed: int, step: int) -> None:
 
 
 def _write_curves(directory: pathlib.Path, curves: dict, budget: Budget) -> None:
-    """The curve of every actor and seed (`seed_file`): its evaluations so far, up to the
-    budget, in the authors' format."""
-    for actor, per_seed in curves.items():
+    """The curve of every actor and seed (`seed_file`; the first actor's is the reported
+    one): its evaluations so far, up to the budget, in the authors' format."""
+    for index, (actor, per_seed) in enumerate(curves.items()):
         for seed, rows in enumerate(per_seed[:budget.seeds], start=1):
             rows = [row for row in rows if row[0] <= budget.steps]
             episodes = len(rows[0]) - 3 if rows else 0
-            rundir.write_csv(directory / seed_file(seed, actor), rundir.eval_columns(episodes),
+            rundir.write_csv(directory / seed_file(seed, actor if index else ""),
+                             rundir.eval_columns(episodes),
                              [[i, *row] for i, row in enumerate(rows)])

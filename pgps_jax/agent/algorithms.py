@@ -1,0 +1,20 @@
+"""PGPS and its baselines by name (`algo=<name>`): the agent classes and `make_agent`."""
+
+from pgps_jax.agent.base import Agent
+from pgps_jax.agent.baselines.cem import CEMAlone
+from pgps_jax.agent.baselines.cemrl import CEMRL
+from pgps_jax.agent.baselines.td3 import TD3Alone
+from pgps_jax.agent.config import ALGORITHMS, EvaluationConfig, PGPSConfig
+from pgps_jax.agent.pgps import PGPS
+from pgps_jax.envs import Env
+
+AGENTS: dict[str, type[Agent]] = {cls.name: cls for cls in (PGPS, CEMAlone, TD3Alone, CEMRL)}
+
+
+def make_agent(algo: str, config: PGPSConfig, env: Env,
+               evaluation: EvaluationConfig = EvaluationConfig()) -> Agent:
+    """The agent of algorithm `algo` (one of `ALGORITHMS`); ValueError naming the valid ones.
+    Give it `for_task(task, algo)` for the algorithm's published hyper-parameters."""
+    if algo not in AGENTS:
+        raise ValueError(f"unknown algorithm {algo!r}; valid: {', '.join(ALGORITHMS)}")
+    return AGENTS[algo](config, env, evaluation)

@@ -1,0 +1,157 @@
+"""CEM-RL (Pourchot & Sigaud, 2019): the CEM's population, half of it trained by a shared
+TD3 critic before it plays, as its authors' code (`es_grad.py`) does.
+
+Each generation: the N actors drawn at the end of the last one play one episode each (T_max
+steps) into the buffer; the CEM update ranks them by return; then N actors are drawn for the
+next generation and the first N/2 are trained one after the other, each from a copy of itself
+as target actor and a fresh Adam: the shared critic first (⌊S/(N/2)⌋ clipped double-Q updates
+toward that actor's smoothed target actions, S = this generation's env steps), then the actor
+(S updates on −Q1, eq. 1). The buffer starts with `warmup_steps` random-action steps (CEM-RL
+plays its first population untrained instead). μ is reported.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from pgps_jax.agent import buffer as replay
+from pgps_jax.agent import cem
+from pgps_jax.agent.base import Agent, Played, TrainState
+from pgps_jax.agent.metrics import Metric, chosen, population_return_key
+from pgps_jax.agent.networks import flatten
+from pgps_jax.agent.td3 import TD3State, repeat
+
+_METRICS = ("gen/generation", "gen/total_steps", "gen/episode_limit", "gen/interaction_steps",
+            "pop/return_mean", "pop/return_std", "cem/elite_return", "cem/var_mean",
+            "cem/damping", "td3/critic_loss", "td3/actor_loss", "pop/unstable_episodes")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CEMRL(Agent):
+    """CEM-RL with TD3; see the module docstring."""
+
+    name = "cemrl"
+    evaluated = ("mu", "elite")
+
+    @property
+    def num_trained(self) -> int:
+        """The actors of a population that the critic trains: the first N/2."""
+        return self.config.pop_size // 2
+
+    def init(self, key: jax.Array, eval_key: jax.Array | None = None) -> TrainState:
+        """A fresh twin critic, μ = a fresh actor, the warm-up's buffer and a first,
+        untrained population."""
+        td3_key, warmup_key, sample_key, next_key = jax.random.split(key, 4)
+        td3_state = self.td3.init(td3_key)
+        buffer, total_steps = self.random_warmup(warmup_key)
+        mean = flatten(td3_state.actor)
+        search = cem.init(mean, self.config.sigma_init)
+        return TrainState(generation=jnp.zeros((), jnp.int32),
+                          total_steps=jnp.asarray(total_steps, jnp.int32),
+                          evaluation=self.idle_evaluation(jnp.stack([mean, mean]), key,
+                                                          eval_key),
+                          key=next_key, cem=search, td3=td3_state, buffer=buffer,
+                          next_population=self.sample(sample_key, search))
+
+    def sample(self, key: jax.Array, search: cem.CEMState) -> jax.Array:
+        """N actors ~ N(μ, Σ) (slot 0 the elite with `elitism`): [N, P]."""
+        population = cem.ask(key, search, self.config.pop_size)
+        return population.at[0].set(search.elite) if self.config.elitism else population
+
+    def play(self, state: TrainState) -> tuple[TrainState, Played]:
+        """The population drawn (and half trained) at the end of the last generation plays."""
+        self.check_state(state)
+        config = self.config
+        reset_key, train_key, next_key = jax.random.split(state.key, 3)
+        population = state.next_population
+        limit = jnp.asarray(config.t_max, jnp.int32)
+        state, episodes, transitions, valid, report = self.rollout(
+            state, population, jnp.full((config.pop_size,), limit), reset_key,
+            rows=config.t_max)
+        return state.replace(key=next_key), Played(
+            population=population, episodes=episodes, transitions=transitions, valid=valid,
+            limit=limit, td3_turn=jnp.zeros((), bool), train_key=train_key, evaluation=report)
+
+    def learn(self, state: TrainState, played: Played) -> tuple[TrainState, dict]:
+        """Buffer, CEM update, then the next population with its first half trained."""
+        config = self.config
+        buffer = replay.add(state.buffer, played.transitions, played.valid)
+        returns = played.episodes.returns
+        steps = played.episodes.lengths.sum()
+        new_cem = cem.tell(state.cem, played.population, returns, top_k=config.top_k,
+                           sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
+                           divide_by_k=config.cem_divide_by_k)
+        sample_key, train_key = jax.random.split(played.train_key)
+        population = self.sample(sample_key, new_cem)
+        td3_state, trained, losses = self.train_half(state.td3, buffer, train_key,
+                                                     population[:self.num_trained], steps)
+        new_state = state.replace(cem=new_cem, td3=td3_state, buffer=buffer,
+                                  generation=state.generation + 1,
+                                  total_steps=state.total_steps + steps,
+                                  next_population=population.at[:self.num_trained]
+                                  .set(trained))
+        return new_state, {
+            **self.counters_and_evaluation(new_state, played),
+            "pop/return_mean": jnp.mean(returns),
+            "pop/return_std": jnp.std(returns),
+            "cem/elite_return": jnp.max(returns),
+            "cem/var_mean": jnp.mean(new_cem.var),
+            "cem/damping": new_cem.damping,
+            **{population_return_key(i): returns[i] for i in range(config.pop_size)},
+            **losses}
+
+    def train_half(self, td3_state: TD3State, buffer: replay.BufferState, key: jax.Array,
+                   actors: jax.Array, steps: jax.Array
+                   ) -> tuple[TD3State, jax.Array, dict]:
+        """Trains `actors` [N/2, P] one after the other with the shared critic (see the
+        module docstring); returns the critic's state, the trained actors and mean losses."""
+        td3, c = self.td3, self.config
+        critic_updates = steps // self.num_trained
+
+        def train_one(carry, inputs):
+            td3_state, critic_total, actor_total = carry
+            flat, actor_key = inputs
+            actor = self._unflatten(flat)
+            td3_state = td3_state.replace(actor=actor, actor_target=actor,
+                                          actor_opt=td3.actor_optimizer.init(actor))
+            batch_key, noise_key, obs_key = jax.random.split(actor_key, 3)
+
+            def critic_step(j, carry):
+                td3_state, total = carry
+                batch = replay.sample(buffer, jax.random.fold_in(batch_key, j), c.batch_size)
+                noise = td3.smoothing_noise(jax.random.fold_in(noise_key, j),
+                                            (c.batch_size, td3.action_size))
+                next_action = td3.target_actions(td3_state.actor_target, batch.next_obs, noise)
+                td3_state, loss = td3.critic_update(td3_state, batch, next_action)
+                return td3_state, total + loss
+
+            def actor_step(j, carry):
+                td3_state, total = carry
+                obs = replay.sample_obs(buffer, jax.random.fold_in(obs_key, j), c.batch_size)
+                td3_state, loss = td3.actor_update(
+                    td3_state, obs, jnp.zeros((c.batch_size, td3.action_size)), jnp.zeros(()))
+                return td3_state, total + loss
+
+            td3_state, critic_total = repeat(critic_updates, critic_step,
+                                             (td3_state, critic_total), c.update_unroll)
+            td3_state, actor_total = repeat(steps, actor_step, (td3_state, actor_total),
+                                            c.update_unroll)
+            return (td3_state, critic_total, actor_total), flatten(td3_state.actor)
+
+        zero = jnp.zeros((), jnp.float32)
+        (td3_state, critic_total, actor_total), trained = jax.lax.scan(
+            train_one, (td3_state, zero, zero),
+            (actors, jax.random.split(key, self.num_trained)))
+        return td3_state, trained, {
+            "td3/critic_loss": critic_total / jnp.maximum(critic_updates * self.num_trained, 1),
+            "td3/actor_loss": actor_total / jnp.maximum(steps * self.num_trained, 1)}
+
+    def evaluated_actors(self, state: TrainState) -> jax.Array:
+        """[2, P]: μ and the elite."""
+        return jnp.stack([state.cem.mean, state.cem.elite])
+
+    def generation_metrics(self) -> tuple[Metric, ...]:
+        n = self.config.pop_size
+        return chosen(_METRICS[:4] + tuple(population_return_key(i) for i in range(n))
+                      + _METRICS[4:], n)
