@@ -13,13 +13,39 @@ import jax.numpy as jnp
 
 from pgps_jax.agent import cem
 from pgps_jax.agent.base import Agent, Played, TrainState
+from pgps_jax.agent.config import PGPSConfig
 from pgps_jax.agent.metrics import Metric, chosen, population_return_key
 from pgps_jax.agent.networks import flatten
 from pgps_jax.agent.pgps import episode_limit
 
-_METRICS = ("gen/generation", "gen/total_steps", "gen/episode_limit", "gen/interaction_steps",
-            "pop/return_mean", "pop/return_std", "cem/elite_return", "cem/var_mean",
-            "cem/damping", "pop/unstable_episodes")
+_COUNTERS = ("gen/generation", "gen/total_steps", "gen/episode_limit", "gen/interaction_steps")
+_SEARCH = ("pop/return_mean", "pop/return_std", "cem/elite_return", "cem/var_mean",
+           "cem/damping")
+
+
+def search_metrics(pop_size: int, extra: tuple[str, ...] = ()) -> tuple[Metric, ...]:
+    """A population search's metrics: the counters, every slot's return, the search
+    distribution's, then `extra` and the unstable episodes (CEM alone, CEM-RL)."""
+    returns = tuple(population_return_key(i) for i in range(pop_size))
+    return chosen(_COUNTERS + returns + _SEARCH + extra + ("pop/unstable_episodes",), pop_size)
+
+
+def told(config: PGPSConfig, search: cem.CEMState, population: jax.Array,
+         returns: jax.Array) -> tuple[cem.CEMState, dict]:
+    """The CEM update from the population's returns, and its metrics (`_SEARCH`, every
+    slot's return)."""
+    new = cem.tell(search, population, returns, top_k=config.top_k,
+                   sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
+                   divide_by_k=config.cem_divide_by_k)
+    return new, {"pop/return_mean": jnp.mean(returns), "pop/return_std": jnp.std(returns),
+                 "cem/elite_return": jnp.max(returns), "cem/var_mean": jnp.mean(new.var),
+                 "cem/damping": new.damping,
+                 **{population_return_key(i): returns[i] for i in range(config.pop_size)}}
+
+
+def mean_and_elite(state: TrainState) -> jax.Array:
+    """[2, P]: μ and the elite (the actors a population search evaluates)."""
+    return jnp.stack([state.cem.mean, state.cem.elite])
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -58,28 +84,15 @@ class CEMAlone(Agent):
 
     def learn(self, state: TrainState, played: Played) -> tuple[TrainState, dict]:
         """The CEM update from the episodes' returns."""
-        config = self.config
-        returns = played.episodes.returns
-        new_cem = cem.tell(state.cem, played.population, returns, top_k=config.top_k,
-                           sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
-                           divide_by_k=config.cem_divide_by_k)
+        new_cem, searched = told(self.config, state.cem, played.population,
+                                 played.episodes.returns)
         new_state = state.replace(cem=new_cem, generation=state.generation + 1,
                                   total_steps=state.total_steps
                                   + played.episodes.lengths.sum())
-        return new_state, {
-            **self.counters_and_evaluation(new_state, played),
-            "pop/return_mean": jnp.mean(returns),
-            "pop/return_std": jnp.std(returns),
-            "cem/elite_return": jnp.max(returns),
-            "cem/var_mean": jnp.mean(new_cem.var),
-            "cem/damping": new_cem.damping,
-            **{population_return_key(i): returns[i] for i in range(config.pop_size)}}
+        return new_state, {**self.counters_and_evaluation(new_state, played), **searched}
 
     def evaluated_actors(self, state: TrainState) -> jax.Array:
-        """[2, P]: μ and the elite."""
-        return jnp.stack([state.cem.mean, state.cem.elite])
+        return mean_and_elite(state)
 
     def generation_metrics(self) -> tuple[Metric, ...]:
-        n = self.config.pop_size
-        return chosen(_METRICS[:4] + tuple(population_return_key(i) for i in range(n))
-                      + _METRICS[4:], n)
+        return search_metrics(self.config.pop_size)

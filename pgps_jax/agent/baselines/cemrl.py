@@ -18,13 +18,10 @@ import jax.numpy as jnp
 from pgps_jax.agent import buffer as replay
 from pgps_jax.agent import cem
 from pgps_jax.agent.base import Agent, Played, TrainState
-from pgps_jax.agent.metrics import Metric, chosen, population_return_key
+from pgps_jax.agent.baselines.cem import mean_and_elite, search_metrics, told
+from pgps_jax.agent.metrics import Metric
 from pgps_jax.agent.networks import flatten
 from pgps_jax.agent.td3 import TD3State, repeat
-
-_METRICS = ("gen/generation", "gen/total_steps", "gen/episode_limit", "gen/interaction_steps",
-            "pop/return_mean", "pop/return_std", "cem/elite_return", "cem/var_mean",
-            "cem/damping", "td3/critic_loss", "td3/actor_loss", "pop/unstable_episodes")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -77,11 +74,8 @@ class CEMRL(Agent):
         """Buffer, CEM update, then the next population with its first half trained."""
         config = self.config
         buffer = replay.add(state.buffer, played.transitions, played.valid)
-        returns = played.episodes.returns
         steps = played.episodes.lengths.sum()
-        new_cem = cem.tell(state.cem, played.population, returns, top_k=config.top_k,
-                           sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
-                           divide_by_k=config.cem_divide_by_k)
+        new_cem, searched = told(config, state.cem, played.population, played.episodes.returns)
         sample_key, train_key = jax.random.split(played.train_key)
         population = self.sample(sample_key, new_cem)
         td3_state, trained, losses = self.train_half(state.td3, buffer, train_key,
@@ -91,15 +85,8 @@ class CEMRL(Agent):
                                   total_steps=state.total_steps + steps,
                                   next_population=population.at[:self.num_trained]
                                   .set(trained))
-        return new_state, {
-            **self.counters_and_evaluation(new_state, played),
-            "pop/return_mean": jnp.mean(returns),
-            "pop/return_std": jnp.std(returns),
-            "cem/elite_return": jnp.max(returns),
-            "cem/var_mean": jnp.mean(new_cem.var),
-            "cem/damping": new_cem.damping,
-            **{population_return_key(i): returns[i] for i in range(config.pop_size)},
-            **losses}
+        return new_state, {**self.counters_and_evaluation(new_state, played), **searched,
+                           **losses}
 
     def train_half(self, td3_state: TD3State, buffer: replay.BufferState, key: jax.Array,
                    actors: jax.Array, steps: jax.Array
@@ -148,10 +135,7 @@ class CEMRL(Agent):
             "td3/actor_loss": actor_total / jnp.maximum(steps * self.num_trained, 1)}
 
     def evaluated_actors(self, state: TrainState) -> jax.Array:
-        """[2, P]: μ and the elite."""
-        return jnp.stack([state.cem.mean, state.cem.elite])
+        return mean_and_elite(state)
 
     def generation_metrics(self) -> tuple[Metric, ...]:
-        n = self.config.pop_size
-        return chosen(_METRICS[:4] + tuple(population_return_key(i) for i in range(n))
-                      + _METRICS[4:], n)
+        return search_metrics(self.config.pop_size, ("td3/critic_loss", "td3/actor_loss"))
