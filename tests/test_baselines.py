@@ -5,6 +5,7 @@ MuJoCo task)."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 import yaml
 
@@ -96,6 +97,24 @@ def test_td3_alone_explores_with_its_noise_and_stores_what_it_did():
     noise = (taken - greedy)[inside]
     assert noise.size > 50 and abs(noise.std() - 0.3) < 0.06 and abs(noise.mean()) < 0.06
     assert np.all(np.asarray(played.valid[:steps, 0])) and not np.any(played.valid[steps:, 0])
+
+
+def test_td3_alone_plays_its_exploring_episodes_side_by_side_then_updates_once_per_step():
+    agent = agent_of("td3", exploring_episodes=2, exploration_noise=0.3)
+    state = jax.jit(agent.init)(jax.random.PRNGKey(0))
+    _, played = jax.jit(agent.play)(state)
+    lengths = np.asarray(played.episodes.lengths)
+    actions = np.asarray(played.transitions.action)
+    assert lengths.shape == (2,) and lengths.min() > 10
+    assert not np.allclose(actions[:10, 0], actions[:10, 1])    # each its own noise
+    learned, metrics = jax.jit(agent.learn)(state, played)
+    steps = int(lengths.sum())
+    assert int(metrics["gen/interaction_steps"]) == steps
+    assert int(learned.total_steps) - int(state.total_steps) == steps
+    assert int(learned.buffer.size) - int(state.buffer.size) == steps
+    critic_updates = optax.tree_utils.tree_get(learned.td3.critic_opt, "count")
+    assert int(critic_updates) == steps
+    assert float(metrics["td3/return"]) == pytest.approx(float(played.episodes.returns.mean()))
 
 
 def test_td3_alone_delays_its_policy_updates():

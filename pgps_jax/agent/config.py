@@ -71,6 +71,10 @@ class PGPSConfig:
     exploration_noise: float = 0.1
     """Std of the Gaussian noise on the TD3 baseline's actions while it collects experience
     (Fujimoto et al., 2018); PGPS's actors explore through the CEM's sampling instead."""
+    exploring_episodes: int = 1
+    """Episodes the TD3 baseline plays side by side per generation, each with its own noise,
+    before its updates (one per step of all of them). Fujimoto et al. play one; k of them
+    cut the sequential env steps of a run k-fold, the data being up to k episodes older."""
 
     # --- replay buffer and warm-up ---
     buffer_size: int = 1_000_000
@@ -247,7 +251,7 @@ def _validate(c: PGPSConfig) -> None:
     _require(c.pop_size >= 2, "pop_size", c.pop_size, "an integer >= 2")
     _require(1 <= c.top_k <= c.pop_size, "top_k", c.top_k, f"in [1, pop_size={c.pop_size}]")
     positive_ints = ("batch_size", "buffer_size", "update_blocks", "update_unroll",
-                     "td3_to_cem_period", "policy_delay",
+                     "td3_to_cem_period", "policy_delay", "exploring_episodes",
                      "ss1_size", "ss2_size", "t_init", "t_max", "t_interval")
     for name in positive_ints:
         value = getattr(c, name)

@@ -4,7 +4,9 @@ noise on its actions and learns from it, with TD3's delayed policy updates.
 One generation is one episode of the actor (at most T_max steps, actions
 clip(π(s) + N(0, σ²), −1, 1), σ = `exploration_noise`) followed by as many updates as it took
 steps (`TD3.train_delayed`), the schedule of the TD3 paper's code; the buffer starts with
-`warmup_steps` random-action steps. The actor is reported.
+`warmup_steps` random-action steps. The actor is reported. With `exploring_episodes` = k > 1
+the generation plays k such episodes side by side, each with its own noise, then updates once
+per step of all of them.
 """
 
 import dataclasses
@@ -41,30 +43,33 @@ class TD3Alone(Agent):
                           key=next_key, td3=td3_state, buffer=buffer)
 
     def play(self, state: TrainState) -> tuple[TrainState, Played]:
-        """One exploring episode of the actor."""
+        """`exploring_episodes` exploring episodes of the actor, side by side."""
         self.check_state(state)
         config = self.config
+        k = config.exploring_episodes
         reset_key, noise_key, train_key, next_key = jax.random.split(state.key, 4)
-        actor = flatten(state.td3.actor)[None]
+        actors = jnp.repeat(flatten(state.td3.actor)[None], k, axis=0)
         limit = jnp.asarray(config.t_max, jnp.int32)
         state, episodes, transitions, valid, report = self.rollout(
-            state, actor, limit[None], reset_key, rows=config.t_max,
-            exploration=(noise_key, jnp.full((1,), config.exploration_noise)))
+            state, actors, jnp.full((k,), limit), reset_key, rows=config.t_max,
+            exploration=(noise_key, jnp.full((k,), config.exploration_noise)))
         return state.replace(key=next_key), Played(
-            population=actor, episodes=episodes, transitions=transitions, valid=valid,
+            population=actors, episodes=episodes, transitions=transitions, valid=valid,
             limit=limit, td3_turn=jnp.ones((), bool), train_key=train_key, evaluation=report)
 
     def learn(self, state: TrainState, played: Played) -> tuple[TrainState, dict]:
-        """The episode's transitions enter the buffer; as many TD3 updates as it took steps."""
+        """The episodes' transitions enter the buffer; as many TD3 updates as they took
+        steps."""
+        config = self.config
         buffer = replay.add(state.buffer, played.transitions, played.valid)
         steps = played.episodes.lengths.sum()
-        td3_state, losses = self.td3.train_delayed(state.td3, buffer, played.train_key, steps,
-                                                   self.config.t_max)
+        td3_state, losses = self.td3.train_delayed(
+            state.td3, buffer, played.train_key, steps, config.exploring_episodes * config.t_max)
         new_state = state.replace(td3=td3_state, buffer=buffer,
                                   generation=state.generation + 1,
                                   total_steps=state.total_steps + steps)
         return new_state, {**self.counters_and_evaluation(new_state, played),
-                           "td3/return": played.episodes.returns[0],
+                           "td3/return": played.episodes.returns.mean(),
                            "td3/in_population": jnp.ones((), bool), **losses}
 
     def evaluated_actors(self, state: TrainState) -> jax.Array:
