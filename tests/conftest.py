@@ -5,7 +5,7 @@ first use."""
 import os
 import pathlib
 
-from train_cli import with_fast_compile_flags, run
+from train_cli import with_fast_compile_flags, run_here
 
 # The tests' programs, theirs and their CLI subprocesses', compile once and run briefly: XLA
 # spends less time optimising them (where this JAX's XLA knows the flags).
@@ -14,8 +14,11 @@ os.environ["XLA_FLAGS"] = with_fast_compile_flags(os.environ.get("XLA_FLAGS", ""
 import jax  # noqa: E402  (after XLA_FLAGS)
 import pytest  # noqa: E402
 
-# The maths tests compare with float32 numpy; a GPU would otherwise multiply in TF32.
-jax.config.update("jax_default_matmul_precision", "highest")
+# The maths tests compare with float32 numpy; a GPU would otherwise multiply in TF32. (Not
+# set on a CPU, which multiplies in float32 anyway, so that the tests' in-process runs and
+# their CLI subprocesses compile the same programs and share the compilation cache.)
+if jax.default_backend() != "cpu":
+    jax.config.update("jax_default_matmul_precision", "highest")
 
 REDUCED = ("seed=1", "total_steps=600", "eval_every=200", "checkpoint_every=2",
            "progress=false", "pgps.pop_size=2", "pgps.top_k=1", "pgps.actor_hidden=[16]",
@@ -60,16 +63,16 @@ HOPPER_RUN = pytest.mark.xdist_group("hopper_run")
 
 
 @pytest.fixture(scope="session")
-def task_runs(tmp_path_factory, cache):
+def task_runs(tmp_path_factory):
     """`task_runs(task)`: (run directory, CompletedProcess) of an uninterrupted reduced run of
-    `task`, trained on first use."""
+    `task` through the training command (in this process), trained on first use."""
     made = {}
 
     def get(task: str):
         if task not in made:
             work = tmp_path_factory.mktemp(f"run_{task}")
             run_dir = work / "run"
-            result = run("train", reduced(task, f"run_dir={run_dir}"), cache, work)
+            result = run_here("train", reduced(task, f"run_dir={run_dir}"), work)
             assert result.returncode == 0, result.stderr[-3000:]
             made[task] = run_dir, result
         return made[task]

@@ -19,7 +19,7 @@ from pgps_jax.cli.run_config import CONFIG_DIR
 from pgps_jax.envs import make_env
 
 from conftest import reduced
-from train_cli import read_csv, run, run_here, tiny
+from train_cli import read_csv, run_here, tiny
 
 SMALL = dict(pop_size=4, top_k=2, actor_hidden=(32, 32), critic_hidden=(32, 32), t_init=20,
              buffer_size=5000, t_max=40, batch_size=32, update_unroll=2)
@@ -164,11 +164,11 @@ def test_cem_rl_trains_the_first_half_of_the_next_population():
 
 
 @pytest.mark.parametrize("algo", ["cem", "td3", "cemrl"])
-def test_each_trains_through_the_command_on_the_point_mass(algo, cache, tmp_path):
+def test_each_trains_through_the_command_on_the_point_mass(algo, tmp_path):
     warmup = "pgps.warmup_steps=0" if algo == "cem" else "pgps.warmup_steps=200"
-    result = run("train", tiny(f"algo={algo}", warmup, "pgps.actor_hidden=[32,32]",
-                               "pgps.critic_hidden=[32,32]", "pgps.batch_size=32",
-                               "total_steps=1500"), cache, tmp_path)
+    result = run_here("train", tiny(f"algo={algo}", warmup, "pgps.actor_hidden=[32,32]",
+                                    "pgps.critic_hidden=[32,32]", "pgps.batch_size=32",
+                                    "total_steps=1500"), tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     run_dir = tmp_path / "runs" / "point" / algo / "seed1"
     agent = AGENTS[algo]
@@ -181,12 +181,11 @@ def test_each_trains_through_the_command_on_the_point_mass(algo, cache, tmp_path
 
 
 @pytest.mark.parametrize("algo", ["cem", "td3", "cemrl"])
-def test_each_trains_on_hopper_and_evaluate_reproduces_its_last_evaluation(algo, cache,
-                                                                           tmp_path):
+def test_each_trains_on_hopper_and_evaluate_reproduces_its_last_evaluation(algo, tmp_path):
     run_dir = tmp_path / "run"
     warmup = "pgps.warmup_steps=0" if algo == "cem" else "pgps.warmup_steps=200"
-    result = run("train", reduced("hopper", f"algo={algo}", warmup, f"run_dir={run_dir}",
-                                  "pgps.pop_size=4", "pgps.top_k=2"), cache, tmp_path)
+    result = run_here("train", reduced("hopper", f"algo={algo}", warmup, f"run_dir={run_dir}",
+                                       "pgps.pop_size=4", "pgps.top_k=2"), tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "done:" in result.stdout
     out = tmp_path / "eval.csv"

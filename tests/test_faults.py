@@ -5,8 +5,6 @@ the finished run's logs equal those of an uninterrupted run."""
 import random
 import shutil
 import signal
-import subprocess
-import sys
 
 import pytest
 
@@ -14,9 +12,9 @@ from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.checkpoint import DAMAGED
 
 from conftest import HOPPER_RUN, reduced
+import full_disk
 from test_resume import assert_same_run
-from train_cli import (REPO, checkpoint_steps, cli_env, data_rows, leftovers, run, run_here,
-                       start, wait_until)
+from train_cli import checkpoint_steps, data_rows, leftovers, run_here, start, wait_until
 
 pytestmark = HOPPER_RUN
 
@@ -53,7 +51,7 @@ def test_sigkill_at_random_moments_then_resume_equals_an_uninterrupted_run(task_
         process.wait()
         killed += process.returncode == -signal.SIGKILL
     assert killed == len(MOMENTS)
-    result = run("train", args, cache, tmp_path)
+    result = run_here("train", args, tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     assert_same_run(run_dir, reference)
 
@@ -71,14 +69,14 @@ def _largest_state_file(checkpoint):
 
 
 def test_a_damaged_checkpoint_is_set_aside_and_the_run_resumes_from_the_one_before(
-        task_runs, cache, tmp_path):
+        task_runs, tmp_path):
     reference, _ = task_runs("hopper")
     run_dir = tmp_path / "damaged"
     shutil.copytree(reference, run_dir)
     steps = checkpoint_steps(run_dir)
     _flip_bytes(_largest_state_file(run_dir / "checkpoints" / str(steps[-1])))
-    result = run("train", reduced("hopper", f"run_dir={run_dir}", "resume=true"), cache,
-                 tmp_path)
+    result = run_here("train", reduced("hopper", f"run_dir={run_dir}", "resume=true"),
+                      tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     assert f"checkpoint {run_dir / 'checkpoints' / str(steps[-1])} is damaged" in result.stderr
     assert f"moved to {run_dir / DAMAGED / str(steps[-1])}" in result.stderr
@@ -108,19 +106,19 @@ def test_when_no_checkpoint_verifies_resume_stops_with_a_message(task_runs, tmp_
 @pytest.mark.parametrize("where, n, file", [("checkpoint", 2, "checkpoints/4"),
                                             ("log", 3, rundir.METRICS)])
 def test_a_full_disk_stops_the_run_with_a_message_and_resume_continues_it(
-        task_runs, cache, tmp_path, where, n, file):
+        task_runs, tmp_path, monkeypatch, where, n, file):
     reference, _ = task_runs("hopper")
     run_dir = tmp_path / "full"
     args = reduced("hopper", f"run_dir={run_dir}")
-    failed = subprocess.run([sys.executable, str(REPO / "tests" / "write_faults.py"), where,
-                             str(n), *args], cwd=tmp_path, env=cli_env(cache),
-                            capture_output=True, text=True, timeout=600)
+    with monkeypatch.context() as patched:
+        full_disk.fill(where, n, patched.setattr)
+        failed = run_here("train", args, tmp_path)
     assert failed.returncode == 1, failed.stderr[-3000:]
     assert f"error: cannot write {run_dir / file}: No space left on device" in failed.stderr
     assert "Traceback" not in failed.stderr and failed.stderr.count("\n") <= 3
     assert "resume=true" in failed.stderr
     assert checkpoint_steps(run_dir) == [2] and leftovers(run_dir) == []
-    resumed = run("train", [*args, "resume=true"], cache, tmp_path)
+    resumed = run_here("train", [*args, "resume=true"], tmp_path)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert f"resumed {run_dir} at generation 2" in resumed.stdout
     assert_same_run(run_dir, reference)

@@ -13,7 +13,7 @@ import pytest
 from pgps_jax.experiments import landscape
 from pgps_jax.cli.errors import UsageError
 
-from train_cli import read_csv, run
+from train_cli import read_csv, run_here
 
 STEPS = 20
 GAMMA = 0.9
@@ -202,8 +202,8 @@ def test_load_theta_rejects_a_wrong_shape(tmp_path):
     (["foo=1"], ["unknown setting 'foo'", "sweep.points"]),
     (["cem.top_k=9", "cem.pop_size=4"], ["cem.top_k=9 is invalid"]),
 ])
-def test_cli_bad_input_is_one_message_and_status_2(cache, tmp_path, args, words):
-    result = run("landscape", args + [f"output_dir={tmp_path / 'out'}"], cache, tmp_path)
+def test_cli_bad_input_is_one_message_and_status_2(tmp_path, args, words):
+    result = run_here("landscape", args + [f"output_dir={tmp_path / 'out'}"], tmp_path)
     assert result.returncode == 2, result.stderr[-2000:]
     for word in words:
         assert word in result.stderr
@@ -211,12 +211,12 @@ def test_cli_bad_input_is_one_message_and_status_2(cache, tmp_path, args, words)
     assert not (tmp_path / "out").exists()
 
 
-def test_cli_on_a_mujoco_task(cache, tmp_path):
+def test_cli_on_a_mujoco_task(tmp_path):
     out = tmp_path / "out"
-    result = run("landscape", ["env=hopper", "steps=20", "threshold=-1e9", "cem.pop_size=4",
-                               "cem.top_k=2", "cem.eval_episodes=1", "sweep.num_params=2",
-                               "sweep.points=3", "sweep.seeds=2", f"output_dir={out}"],
-                 cache, tmp_path)
+    result = run_here("landscape", ["env=hopper", "steps=20", "threshold=-1e9",
+                                    "cem.pop_size=4", "cem.top_k=2", "cem.eval_episodes=1",
+                                    "sweep.num_params=2", "sweep.points=3", "sweep.seeds=2",
+                                    f"output_dir={out}"], tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     _, rows = read_csv(out / "analysis.csv")
     assert len(rows) == 2

@@ -108,3 +108,16 @@ def test_render_bad_arguments(task_runs, tmp_path, args, words):
     for word in words:
         assert word in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_importing_the_command_leaves_the_gl_backend_alone():
+    """Only the command picks MUJOCO_GL (before MuJoCo's first import): importing its module
+    into a process (a test worker, a user's script) must not choose a backend for the
+    process's later `import mujoco` or for its child processes."""
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY")}
+    probe = subprocess.run(
+        [sys.executable, "-c", "import os, pgps_jax.cli.render; "
+                               "print(os.environ.get('MUJOCO_GL'))"],
+        env=env, capture_output=True, text=True, timeout=120)
+    assert probe.returncode == 0, probe.stderr[-2000:]
+    assert probe.stdout.strip() == "None"

@@ -8,8 +8,8 @@ import signal
 from pgps_jax.cli import run_dir as rundir
 
 from conftest import HOPPER_RUN, reduced
-from train_cli import (checkpoint_steps, data_rows, deterministic, leftovers, read_csv, run,
-                       start, wait_until)
+from train_cli import (checkpoint_steps, data_rows, deterministic, leftovers, read_csv,
+                       run_here, start, wait_until)
 
 pytestmark = HOPPER_RUN
 
@@ -46,24 +46,24 @@ def test_ctrl_c_writes_a_checkpoint_then_resume_by_directory(task_runs, cache, t
     assert rundir.load_actors(run_dir / rundir.ACTORS)["generation"] == stopped_at
     assert leftovers(run_dir) == []
     # resume=<dir>: the run's own settings are used, none repeated on the command line
-    result = run("train", [f"resume={run_dir}", "progress=false"], cache, tmp_path)
+    result = run_here("train", [f"resume={run_dir}", "progress=false"], tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     assert f"at generation {stopped_at}" in result.stdout
     assert_same_run(run_dir, reference)
 
 
-def test_resuming_a_finished_run_changes_nothing(task_runs, cache, tmp_path):
+def test_resuming_a_finished_run_changes_nothing(task_runs, tmp_path):
     reference, _ = task_runs("hopper")
     before = {p: p.read_bytes() for p in (reference / rundir.EVAL, reference / rundir.METRICS,
                                           reference / rundir.ACTORS)}
-    result = run("train", reduced("hopper", f"run_dir={reference}", "resume=true"), cache,
-                 tmp_path)
+    result = run_here("train", reduced("hopper", f"run_dir={reference}", "resume=true"),
+                      tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "done:" in result.stdout
     assert {p: p.read_bytes() for p in before} == before
 
 
-def test_resume_by_directory_extends_the_budget_under_the_run_s_own_warm_up(task_runs, cache,
+def test_resume_by_directory_extends_the_budget_under_the_run_s_own_warm_up(task_runs,
                                                                             tmp_path):
     """total_steps=800 is below the command line's default warm-up (10,000) but above the
     run's (200): the run's settings decide."""
@@ -71,8 +71,8 @@ def test_resume_by_directory_extends_the_budget_under_the_run_s_own_warm_up(task
     run_dir = tmp_path / "extended"
     shutil.copytree(reference, run_dir)
     before = data_rows(run_dir / rundir.METRICS)
-    result = run("train", [f"resume={run_dir}", "total_steps=800", "progress=false"], cache,
-                 tmp_path)
+    result = run_here("train", [f"resume={run_dir}", "total_steps=800", "progress=false"],
+                      tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     _, rows = read_csv(run_dir / rundir.METRICS)
     assert len(rows) > before and int(rows[-1]["env_steps"]) >= 800

@@ -24,6 +24,8 @@ from train_cli import (checkpoint_steps, leftovers, read_csv, run, run_here, ten
 
 TOTAL, EVAL_EVERY, WARMUP, POP = 3000, 400, 200, 4
 
+pytestmark = pytest.mark.xdist_group("train_point")  # one worker makes the reference run
+
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory, cache):
@@ -125,9 +127,9 @@ def test_evaluate_reproduces_the_last_evaluation(reference, cache, tmp_path):
     assert strip(rows[0]) == strip(training[-1])
 
 
-def test_render_refuses_a_task_without_a_mujoco_model(reference, cache, tmp_path):
+def test_render_refuses_a_task_without_a_mujoco_model(reference, tmp_path):
     run_dir, _ = reference
-    result = run("render", [f"run={run_dir}", f"out={tmp_path / 'x.gif'}"], cache, tmp_path)
+    result = run_here("render", [f"run={run_dir}", f"out={tmp_path / 'x.gif'}"], tmp_path)
     assert result.returncode == 2
     assert "no MuJoCo model" in result.stderr and not (tmp_path / "x.gif").exists()
 

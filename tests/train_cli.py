@@ -71,14 +71,19 @@ def run(module: str, args, cache_dir: pathlib.Path, cwd: pathlib.Path,
 
 def run_here(module: str, args, cwd: pathlib.Path) -> subprocess.CompletedProcess:
     """`python -m pgps_jax.<module> <args>` run in this process: its `main` with `args` as
-    the command line, in `cwd`, with stdout and stderr captured. For commands that stop
-    before any training (bad input), saving a Python start-up per test."""
+    the command line, in `cwd`, on the CPU (as `run`'s subprocesses), with stdout and stderr
+    captured. It saves a Python start-up, and a second run of the same settings in this
+    process reuses the first one's compiled programs (`pgps_jax.cli.loop`)."""
+    import jax
     main = importlib.import_module(f"pgps_jax.{module}").main
     out, err = io.StringIO(), io.StringIO()
     argv, here = sys.argv, os.getcwd()
     handlers = logging.root.handlers[:]  # Hydra sets up logging to the streams of the moment
+    device = jax.config.jax_default_device
     sys.argv = [f"pgps_jax.{module}", *args]
     try:
+        # global, not a context: the programs compile in threads of their own
+        jax.config.update("jax_default_device", jax.devices("cpu")[0])
         os.chdir(cwd)
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             try:
@@ -88,6 +93,7 @@ def run_here(module: str, args, cwd: pathlib.Path) -> subprocess.CompletedProces
     finally:
         sys.argv = argv
         os.chdir(here)
+        jax.config.update("jax_default_device", device)
         logging.root.handlers[:] = handlers
     return subprocess.CompletedProcess([module, *args], code, out.getvalue(), err.getvalue())
 

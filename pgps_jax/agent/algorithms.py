@@ -1,5 +1,7 @@
 """PGPS and its baselines by name (`algo=<name>`): the agent classes and `make_agent`."""
 
+import functools
+
 from pgps_jax.agent.base import Agent
 from pgps_jax.agent.baselines.cem import CEMAlone
 from pgps_jax.agent.baselines.cemrl import CEMRL
@@ -14,7 +16,14 @@ AGENTS: dict[str, type[Agent]] = {cls.name: cls for cls in (PGPS, CEMAlone, TD3A
 def make_agent(algo: str, config: PGPSConfig, env: Env,
                evaluation: EvaluationConfig = EvaluationConfig()) -> Agent:
     """The agent of algorithm `algo` (one of `ALGORITHMS`); ValueError naming the valid ones.
-    Give it `for_task(task, algo)` for the algorithm's published hyper-parameters."""
+    Give it `for_task(task, algo)` for the algorithm's published hyper-parameters. Equal
+    arguments give the same agent, whose programs the training loop compiles once per
+    process (`pgps_jax.cli.loop`)."""
     if algo not in AGENTS:
         raise ValueError(f"unknown algorithm {algo!r}; valid: {', '.join(ALGORITHMS)}")
+    return _built(algo, config, env, evaluation)
+
+
+@functools.lru_cache(maxsize=32)
+def _built(algo: str, config: PGPSConfig, env: Env, evaluation: EvaluationConfig) -> Agent:
     return AGENTS[algo](config, env, evaluation)

@@ -11,6 +11,7 @@ way to its end from its start and evaluates the state the run ends with, both wi
 import dataclasses
 import functools
 import time
+import weakref
 from concurrent.futures import Future
 from typing import Optional
 
@@ -48,27 +49,43 @@ class Programs:
         generation lies (a batch of seeds split over devices); by default on one device.
         `restored`: the shapes of a state restored from a checkpoint (`state_shapes`), for a
         resumed run, which needs no `init`."""
-        batched = jax.vmap if seeds else (lambda fn: fn)
-        jit = (jax.jit if sharding is None
-               else functools.partial(jax.jit, out_shardings=sharding))
-        init = jit(batched(agent.init))
-        play = jit(batched(agent.play), donate_argnums=0)
-        learn = jit(batched(agent.learn), donate_argnums=0)
+        jitted = _jitted(agent, seeds, sharding)
         # A fresh run's init is traced once: `lower` reuses the trace.
-        abstract = placed(jax.eval_shape(init, key, eval_key) if restored is None
+        abstract = placed(jax.eval_shape(jitted["init"], key, eval_key) if restored is None
                           else restored, sharding)
-        played = placed(jax.eval_shape(play, abstract), sharding)
-        programs = {"play": (play, (abstract,)), "learn": (learn, played)}
+        played = placed(jax.eval_shape(jitted["play"], abstract), sharding)
+        programs = {"play": (jitted["play"], (abstract,)), "learn": (jitted["learn"], played)}
         if restored is None:
-            programs["init"] = (init, (key, eval_key))
-        actors = placed(jax.eval_shape(batched(agent.evaluated_actors), abstract), sharding)
+            programs["init"] = (jitted["init"], (key, eval_key))
+        actors = placed(jax.eval_shape(jitted["evaluated_actors"], abstract), sharding)
         futures = compile_ahead(programs, later={
-            "evaluate": (jit(batched(agent.evaluate)), (actors, eval_key))})
+            "evaluate": (jitted["evaluate"], (actors, eval_key))})
         return cls(agent, seeds, futures)
 
     def __getitem__(self, name: str):
         """The compiled program `name`, waiting for its compilation if needed."""
         return self.futures[name].result()
+
+
+_JITTED: "weakref.WeakKeyDictionary[Agent, dict]" = weakref.WeakKeyDictionary()
+
+
+def _jitted(agent: Agent, seeds: bool, sharding: Optional[jax.sharding.Sharding]) -> dict:
+    """The agent's jitted programs, made once per agent, seeds and sharding: a later run of
+    the same agent in this process (`make_agent` returns one agent per configuration) finds
+    their traces and executables in JAX's caches instead of tracing the physics again."""
+    per_agent = _JITTED.setdefault(agent, {})
+    if (seeds, sharding) not in per_agent:
+        batched = jax.vmap if seeds else (lambda fn: fn)
+        jit = (jax.jit if sharding is None
+               else functools.partial(jax.jit, out_shardings=sharding))
+        per_agent[seeds, sharding] = {
+            "init": jit(batched(agent.init)),
+            "play": jit(batched(agent.play), donate_argnums=0),
+            "learn": jit(batched(agent.learn), donate_argnums=0),
+            "evaluate": jit(batched(agent.evaluate)),
+            "evaluated_actors": batched(agent.evaluated_actors)}
+    return per_agent[seeds, sharding]
 
 
 def placed(shapes, sharding: Optional[jax.sharding.Sharding]):

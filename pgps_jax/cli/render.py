@@ -12,21 +12,18 @@ td3 or elite of PGPS; default the one it reports); steps (default: the run's eva
 width, height (default 480x360, at most 640x480); camera (a camera name of the model, default
 its first one, "track"); max_fps (default 50; faster tasks skip frames).
 
-Headless machines (no display): MuJoCo needs an offscreen OpenGL. This module sets
-MUJOCO_GL=egl when neither MUJOCO_GL nor DISPLAY is set; EGL comes with the system package
+Headless machines (no display): MuJoCo needs an offscreen OpenGL. The command sets
+MUJOCO_GL=egl when neither MUJOCO_GL nor DISPLAY is set (in a process that has not imported
+MuJoCo yet; importing this module changes nothing); EGL comes with the system package
 `libegl1` (Debian/Ubuntu: `apt-get install libegl1`; with NVIDIA drivers, their EGL). Without
 EGL, install OSMesa (`apt-get install libosmesa6`) and run with MUJOCO_GL=osmesa (slower).
 MP4 needs `pip install imageio-ffmpeg`; GIF needs nothing more.
 """
 
-import os
-
-if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
-    os.environ["MUJOCO_GL"] = "egl"  # must precede the first `import mujoco`
-
 import functools
 import importlib.util
 import math
+import os
 import pathlib
 import sys
 from typing import Optional, Sequence
@@ -116,6 +113,9 @@ def write_video(path: pathlib.Path, frames: Sequence[np.ndarray], fps: float) ->
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if ("mujoco" not in sys.modules and "MUJOCO_GL" not in os.environ
+            and not os.environ.get("DISPLAY")):
+        os.environ["MUJOCO_GL"] = "egl"  # read by MuJoCo's first import, in `_render`
     return report(lambda: _render(argv))
 
 

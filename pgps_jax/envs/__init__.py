@@ -4,6 +4,7 @@
 solver settings (fields of `physics.Physics`).
 """
 
+import functools
 import importlib
 
 importlib.import_module("pgps_jax.envs.quiet_mjx")  # before brax, which imports mujoco.mjx
@@ -32,7 +33,14 @@ TASKS = ("halfcheetah", "hopper", "walker2d", "ant", "swimmer")
 
 
 def make_env(name: str, **kwargs) -> Env:
-    """Builds the task `name`; raises ValueError listing the tasks if it is unknown."""
+    """Builds the task `name`; raises ValueError listing the tasks if it is unknown. Equal
+    arguments give the same (immutable) env object, so that agents of equal settings share
+    their compiled programs within a process (`pgps_jax.cli.loop`)."""
     if name not in _REGISTRY:
         raise ValueError(f"unknown task {name!r}; available tasks: {', '.join(_REGISTRY)}")
-    return _REGISTRY[name](**kwargs)
+    return _built(name, tuple(sorted(kwargs.items())))
+
+
+@functools.lru_cache(maxsize=32)
+def _built(name: str, kwargs: tuple) -> Env:
+    return _REGISTRY[name](**dict(kwargs))

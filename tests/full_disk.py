@@ -1,14 +1,10 @@
-"""`python tests/write_faults.py <where> <n> <train arguments...>`: `python -m pgps_jax.train`
-with a disk that fills up: the n-th write (from 1) of a kind fails with ENOSPC.
-
-where = checkpoint: orbax's write of a checkpoint's JSON metadata, inside its temporary
-        directory (the state's arrays are already written there);
-        log: a data line of metrics.csv (counted from the start of this process).
+"""A disk that fills up: `fill(where, n, patch)` makes the n-th write (from 1) of a kind fail
+with ENOSPC, `patch(owner, name, value)` replacing what it needs (pytest's
+`monkeypatch.setattr`, undone after the test).
 """
 
 import errno
 import os
-import sys
 
 from etils import epath
 
@@ -27,7 +23,7 @@ def _full(path) -> OSError:
     return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
 
 
-def fill_checkpoints(n: int) -> None:
+def fill_checkpoints(n: int, patch) -> None:
     due = _fail_on(n)
     write_text = epath.gpath.PosixGPath.write_text
 
@@ -35,7 +31,7 @@ def fill_checkpoints(n: int) -> None:
         if "orbax-checkpoint-tmp" in str(self) and self.name == "metadata" and due():
             raise _full(self)
         return write_text(self, *args, **kwargs)
-    epath.gpath.PosixGPath.write_text = failing_write_text
+    patch(epath.gpath.PosixGPath, "write_text", failing_write_text)
 
 
 class _FillingFile:
@@ -53,7 +49,7 @@ class _FillingFile:
         return getattr(self._file, name)
 
 
-def fill_logs(n: int) -> None:
+def fill_logs(n: int, patch) -> None:
     from pgps_jax.cli import run_dir as rundir
     due = _fail_on(n)
 
@@ -63,13 +59,12 @@ def fill_logs(n: int) -> None:
             if self.path.name == rundir.METRICS:
                 self._file = _FillingFile(self._file, due)
         return opened
-    rundir.CsvLog.start = filling(rundir.CsvLog.start)
-    rundir.CsvLog.reopen = filling(rundir.CsvLog.reopen)
+    patch(rundir.CsvLog, "start", filling(rundir.CsvLog.start))
+    patch(rundir.CsvLog, "reopen", filling(rundir.CsvLog.reopen))
 
 
-if __name__ == "__main__":
-    where, n, args = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
-    {"checkpoint": fill_checkpoints, "log": fill_logs}[where](n)
-    from pgps_jax.cli import train
-    sys.argv = ["pgps_jax.train", *args]
-    train.main()
+def fill(where: str, n: int, patch) -> None:
+    """where = checkpoint: orbax's write of a checkpoint's JSON metadata, inside its temporary
+    directory (the state's arrays are already written there); log: a data line of
+    metrics.csv (counted from the first write after this call)."""
+    {"checkpoint": fill_checkpoints, "log": fill_logs}[where](n, patch)
