@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 
+import jax
 import numpy as np
 import pytest
 
@@ -76,6 +77,39 @@ def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrup
     assert [float(r["mu_final"]) for r in rows] == pytest.approx(result["final"]["mu"])
     assert json.loads((cell / runner.RESULT).read_text()) == result
     assert not (cell / "checkpoints").exists()  # a done cell keeps its results only
+
+
+def test_each_seed_is_reported_at_its_own_budget(uninterrupted):
+    """The batch trains until its last seed reaches the budget; a seed's result is of the
+    generation at which it first reached it (the two seeds get there at different ones)."""
+    out, (result,) = uninterrupted
+    cell = out / "figure4" / "hopper" / "pgps"
+    overshoot = []
+    for seed in (1, 2):
+        _, rows = read_csv(cell / f"seed{seed}_generations.csv")
+        steps = [int(r["env_steps"]) for r in rows]
+        assert result["env_steps"][seed - 1] == next(s for s in steps if s >= BUDGET.steps)
+        overshoot.append(steps[-1] > result["env_steps"][seed - 1])
+    assert any(overshoot)
+    assert not (cell / runner.AT_BUDGET).exists()
+
+
+def test_at_budget_keeps_each_seed_s_first_actors_across_a_restart(tmp_path):
+    class Agent:
+        def evaluated_actors(self, state):
+            return state
+
+    budget = runner.Budget(steps=500, seeds=2)
+    first = runner.AtBudget.read(tmp_path, budget.seeds)
+    first.record(np.array([400, 300]), np.zeros((2, 3, 4)), Agent(), budget, tmp_path)
+    assert not (tmp_path / runner.AT_BUDGET).exists()
+    first.record(np.array([520, 450]), np.ones((2, 3, 4)), Agent(), budget, tmp_path)
+    restarted = runner.AtBudget.read(tmp_path, budget.seeds)
+    restarted.record(np.array([560, 510]), np.full((2, 3, 4), 2.0), Agent(), budget, tmp_path)
+    assert restarted.steps.tolist() == [520, 510]
+    sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    actors = np.asarray(restarted.actors_of(np.full((2, 3, 4), 3.0), Agent(), sharding))
+    np.testing.assert_array_equal(actors, np.stack([np.ones((3, 4)), np.full((3, 4), 2.0)]))
 
 
 def test_a_done_cell_is_not_run_again(uninterrupted):

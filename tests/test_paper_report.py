@@ -59,7 +59,7 @@ def test_the_report_draws_each_run_beside_the_paper_and_tabulates_the_done_ones(
         _curve(done / f"seed{seed}.csv", steps, [10 * scale, 20 * scale, 30 * scale])
     (done / "result.json").write_text(json.dumps(
         {"config": "pgps", "seeds": [1, 2, 3], "steps": 30_000,
-         "final": {"mu": [100.0, 250.0, 400.0]}}))
+         "env_steps": [30_000, 31_500, 30_200], "final": {"mu": [100.0, 250.0, 400.0]}}))
     running = out / "table1" / "ant" / "base"  # no result yet
     running.mkdir()
     _curve(running / "seed1.csv", steps[:2], [1.0, 2.0])
@@ -76,7 +76,7 @@ def test_the_report_draws_each_run_beside_the_paper_and_tabulates_the_done_ones(
     rows = [line.split(" | ") for line in table.read_text().splitlines()[2:]]
     ours = np.array([100.0, 250.0, 400.0])
     low, high = report.stratified_bootstrap_ci([ours], jax.random.PRNGKey(report.BOOTSTRAP_SEED))
-    assert rows[0] == ["| ant", "ours: pgps", "30,000", "100 250 400",
+    assert rows[0] == ["| ant", "ours: pgps", "30,000–31,500", "100 250 400",
                        f"250 ± {ours.std(ddof=1):.0f}",
                        f"250 [{low:,.0f}, {high:,.0f}] |"]
     assert rows[1][:5] == ["| ant", "paper: PGPS", "30,000", "350 330", "340 ± 14"]
@@ -92,7 +92,7 @@ def test_figure5_reports_the_td3_actor_without_the_paper_s_mu(tmp_path):
     _curve(cell / "seed1.csv", [10_000, 20_000], [5.0, 6.0])
     _curve(cell / "seed1_td3.csv", [10_000, 20_000], [50.0, 60.0])
     (cell / "result.json").write_text(json.dumps(
-        {"config": "without_ea_guidance", "seeds": [1], "steps": 20_000,
+        {"config": "without_ea_guidance", "seeds": [1], "steps": 20_000, "env_steps": [20_000],
          "final": {"mu": [6.0], "td3": [61.0], "elite": [7.0]}}))
     (reference / "swimmer").mkdir(parents=True)
     _curve(reference / "swimmer" / "1.csv", [10_000, 20_000], [0.0, 300.0])
@@ -168,7 +168,8 @@ def test_figure4_reports_each_algorithms_actor_and_the_peers_found_beside_them(t
         for seed in (1, 2):
             _curve(cell / f"seed{seed}.csv", [10_000, 20_000], [1.0, final[next(iter(final))][0]])
         (cell / "result.json").write_text(json.dumps(
-            {"config": config, "seeds": [1, 2], "steps": 20_000, "final": final}))
+            {"config": config, "seeds": [1, 2], "steps": 20_000, "env_steps": [20_000] * 2,
+             "final": final}))
     report.write_report("figure4", out, reference)
     table = (out / "figure4" / report.REPORT).read_text()
     assert "| hopper | ours: td3 | 20,000 | 123 125 |" in table

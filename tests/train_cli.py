@@ -80,8 +80,15 @@ def run_here(module: str, args, cwd: pathlib.Path) -> subprocess.CompletedProces
     argv, here = sys.argv, os.getcwd()
     handlers = logging.root.handlers[:]  # Hydra sets up logging to the streams of the moment
     device = jax.config.jax_default_device
+    # Hydra's logging set-up closes every handler, and absl's closes its stream unless that is
+    # the sys.stderr of the moment: pytest's capture, were it not pointed at ours meanwhile
+    absl = sys.modules.get("absl.logging")
+    absl_handler = absl.get_absl_handler().python_handler if absl else None
+    absl_stream = absl_handler.stream if absl_handler else None
     sys.argv = [f"pgps_jax.{module}", *args]
     try:
+        if absl_handler:
+            absl_handler.stream = err
         # global, not a context: the programs compile in threads of their own
         jax.config.update("jax_default_device", jax.devices("cpu")[0])
         os.chdir(cwd)
@@ -95,6 +102,8 @@ def run_here(module: str, args, cwd: pathlib.Path) -> subprocess.CompletedProces
         os.chdir(here)
         jax.config.update("jax_default_device", device)
         logging.root.handlers[:] = handlers
+        if absl_handler:
+            absl_handler.stream = absl_stream
     return subprocess.CompletedProcess([module, *args], code, out.getvalue(), err.getvalue())
 
 

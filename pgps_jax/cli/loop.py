@@ -137,18 +137,21 @@ class Finished:
     """The evaluation of the state the run ends with."""
 
 
-def finish(programs: Programs, state: TrainState,
-           final_key: Optional[jax.Array] = None) -> tuple[TrainState, Finished]:
+def finish(programs: Programs, state: TrainState, final_key: Optional[jax.Array] = None,
+           final_actors: Optional[jax.Array] = None) -> tuple[TrainState, Finished]:
     """Ends a run's evaluations: the one under way, played from its start to its end, and one
-    of the final state (start states of `final_key`, by default the run's evaluation key).
-    Returns the state with no evaluation under way."""
+    of the final state's actors, or of `final_actors` where given (start states of
+    `final_key`, by default the run's evaluation key). Returns the state with no evaluation
+    under way."""
     agent, evaluate = programs.agent, programs["evaluate"]
     tests = state.evaluation
     active, began = jax.device_get((tests.active, tests.step))
     unfinished = (jax.device_get(evaluate(tests.actors, tests.key)) if np.any(active)
                   else None)
-    actors = (jax.vmap(agent.evaluated_actors) if programs.seeds
-              else agent.evaluated_actors)(state)
+    actors = final_actors
+    if actors is None:
+        actors = (jax.vmap(agent.evaluated_actors) if programs.seeds
+                  else agent.evaluated_actors)(state)
     final = jax.device_get(evaluate(actors, tests.key if final_key is None else final_key))
     state = state.replace(evaluation=tests.replace(active=jnp.zeros_like(tests.active)))
     return state, Finished(unfinished, np.asarray(active), np.asarray(began), final)

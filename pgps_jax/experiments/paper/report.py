@@ -96,14 +96,16 @@ class Finals:
     """Final returns of one (task, configuration) over its seeds, with their statistics."""
 
     source: str
-    steps: int
-    """Env steps at which the returns were measured."""
+    steps: tuple[int, int]
+    """The fewest and the most env steps at which a seed's return was measured."""
     returns: np.ndarray
 
     def row(self, key: jax.Array) -> list[str]:
         r = self.returns
         low, high = stratified_bootstrap_ci([r], key)
-        return [self.source, f"{self.steps:,}", " ".join(f"{x:,.0f}" for x in r),
+        low_steps, high_steps = self.steps
+        steps = f"{low_steps:,}" + (f"–{high_steps:,}" if high_steps != low_steps else "")
+        return [self.source, steps, " ".join(f"{x:,.0f}" for x in r),
                 f"{r.mean():,.0f} ± {sample_std(r):,.0f}",
                 f"{iqm(r):,.0f} [{low:,.0f}, {high:,.0f}]"]
 
@@ -133,7 +135,8 @@ def _ours(directory: pathlib.Path, actor: Optional[str] = None
         return curves, None, None
     result = json.loads(path.read_text())
     reported = actor or next(iter(result["final"]))  # the algorithm's evaluated actors, in order
-    return curves, Finals(f"ours: {result['config']}", result["steps"],
+    steps = (min(result["env_steps"]), max(result["env_steps"]))
+    return curves, Finals(f"ours: {result['config']}", steps,
                           np.array(result["final"][reported])), result
 
 
@@ -143,7 +146,8 @@ def _paper(reference: pathlib.Path, task: str) -> tuple[Optional[Curves], Option
     if not files:
         return None, None
     read = [read_curve(p) for p in files]
-    return on_grid(read), Finals("paper: PGPS", int(max(s[-1] for s, _ in read)),
+    last = [int(s[-1]) for s, _ in read]
+    return on_grid(read), Finals("paper: PGPS", (min(last), max(last)),
                                  np.array([r[-1] for _, r in read]))
 
 

@@ -24,6 +24,7 @@ it runs. A cell is continued or counted as done only under the settings it was s
 """
 
 import dataclasses
+import io
 import json
 import math
 import pathlib
@@ -46,6 +47,7 @@ from pgps_jax.envs import make_env
 from pgps_jax.experiments.paper.grid import Cell
 
 RESULT = "result.json"
+AT_BUDGET = "at_budget.npz"
 FINAL_KEY_OFFSET = 10_000
 """Seed k's final evaluation starts from PRNGKey(k + FINAL_KEY_OFFSET): states no evaluation
 during training saw."""
@@ -130,6 +132,8 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             programs = loop.Programs.compile(agent, keys, eval_keys, seeds=True,
                                              sharding=sharding, restored=shapes)
         steps = np.asarray(jax.device_get(state.total_steps))
+        at_budget = AtBudget.read(directory, budget.seeds)
+        at_budget.record(steps, state, agent, budget, directory)
         population_keys = [m.key for m in _population_metrics(agent)]
         while steps[:budget.seeds].min() < budget.steps:
             state, done = loop.generation(programs, state)
@@ -141,6 +145,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                 populations[seed].append([generation] + [
                     np.asarray(m[key][seed]).item() for key in population_keys])
             steps = np.asarray(m["gen/total_steps"])
+            at_budget.record(steps, state, agent, budget, directory)
             if generation % budget.checkpoint_every == 0:
                 checkpoints.save(generation, state, {
                     "settings": settings, "curves": curves, "populations": populations,
@@ -151,7 +156,8 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                 on_generation(generation, steps[:budget.seeds])
         final_keys = jax.device_put(
             jax.vmap(jax.random.PRNGKey)(numbers + FINAL_KEY_OFFSET), sharding)
-        state, finished = loop.finish(programs, state, final_keys)
+        state, finished = loop.finish(programs, state, final_keys,
+                                      at_budget.actors_of(state, agent, sharding))
     finally:
         checkpoints.close()
     for seed in np.flatnonzero(finished.unfinished_active):  # played from its start
@@ -161,14 +167,66 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     result = {"task": cell.task, "config": cell.config, "algo": cell.algo,
               "overrides": dict(cell.overrides),
               "steps": budget.steps, "seeds": list(range(1, budget.seeds + 1)),
-              "env_steps": steps[:budget.seeds].tolist(), "generations": generation,
+              "env_steps": at_budget.steps.tolist(), "generations": generation,
               "final": {actor: np.asarray(finished.final[f"eval/{actor}_mean"])
                         [:budget.seeds].tolist() for actor in agent.evaluated},
               "wall_s": elapsed + time.perf_counter() - start,
               "device": f"{mesh.size} × {jax.devices()[0].device_kind}", "settings": settings}
     rundir.write_atomic(directory / RESULT, json.dumps(result, indent=1).encode())
     shutil.rmtree(directory / "checkpoints", ignore_errors=True)  # the result is all it keeps
+    (directory / AT_BUDGET).unlink(missing_ok=True)
     return result
+
+
+@dataclasses.dataclass
+class AtBudget:
+    """Each seed's evaluated actors [A, P] and env steps when it first reached the budget.
+
+    The seeds of a cell train in one batch until the last of them reaches the budget (with
+    early terminations, seeds take different numbers of generations to get there); a seed's
+    final evaluation is of its actors at its own budget, as its curve ends there. Kept in
+    the cell's `AT_BUDGET` file, so that a cut-off cell continues with them (a cell resumed
+    from a checkpoint before a seed's record reaches the same record again: same seed, same
+    machine, same result)."""
+
+    actors: list
+    """Per seed: its actors (numpy), or None while it is below the budget."""
+    steps: np.ndarray
+    """[seeds] env steps when reached (0 while below)."""
+
+    @classmethod
+    def read(cls, directory: pathlib.Path, seeds: int) -> "AtBudget":
+        path = directory / AT_BUDGET
+        if not path.exists():
+            return cls([None] * seeds, np.zeros(seeds, np.int64))
+        with np.load(path) as saved:
+            steps = saved["steps"]
+            return cls([saved[f"seed{i}"] if steps[i] else None for i in range(seeds)], steps)
+
+    def record(self, steps: np.ndarray, state, agent, budget, directory: pathlib.Path):
+        """Records the seeds that have reached the budget since the last call."""
+        reached = [i for i in range(budget.seeds)
+                   if self.actors[i] is None and steps[i] >= budget.steps]
+        if not reached:
+            return
+        actors = np.asarray(jax.device_get(jax.vmap(agent.evaluated_actors)(state)))
+        for i in reached:
+            self.actors[i], self.steps[i] = actors[i], steps[i]
+        arrays = {f"seed{i}": a for i, a in enumerate(self.actors) if a is not None}
+        rundir.write_atomic(directory / AT_BUDGET, _npz_bytes(steps=self.steps, **arrays))
+
+    def actors_of(self, state, agent, sharding) -> jax.Array:
+        """[batch, A, P]: the recorded actors; the padding seeds' current ones."""
+        current = np.array(jax.device_get(jax.vmap(agent.evaluated_actors)(state)))
+        for i, actors in enumerate(self.actors):
+            current[i] = actors
+        return jax.device_put(current, sharding)
+
+
+def _npz_bytes(**arrays) -> bytes:
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
 
 
 def _settings(algo: str, config, budget: Budget, devices: int) -> dict:
