@@ -293,8 +293,9 @@ def _check_evaluations(evaluation, seed, generations):
             at = int(metrics["eval/step"])
             reported.append((at, generation))
             for name in ("mu", "td3", "elite"):
-                np.testing.assert_allclose(metrics[f"eval/{name}_returns"],
-                                           expected[at][f"eval/{name}_returns"], rtol=1e-5)
+                np.testing.assert_allclose(metrics[f"eval/{name}_returns"],  # returns near 0
+                                           expected[at][f"eval/{name}_returns"],
+                                           rtol=1e-5, atol=1e-5)
         assert int(state.buffer.size) == int(state.total_steps)
     steps = [at for at, _ in reported]
     assert steps == sorted(expected)[:len(steps)] and len(steps) == len(set(steps))
