@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
-from pgps_jax.cli.errors import UsageError
-from pgps_jax.experiments.paper import command, grid, runner
+from pgps_jax.cli.errors import RunFailed, UsageError
+from pgps_jax.experiments.paper import command, grid, runner, side_by_side
 
-from train_cli import REPO, read_csv, run_here
+from train_cli import REPO, cli_env, read_csv, run_here
 
 TINY = dict(pop_size=2, top_k=1, actor_hidden=(16,), critic_hidden=(16,), batch_size=16,
             buffer_size=2000, warmup_steps=200, t_init=20, t_max=40, t_interval=400,
@@ -174,6 +174,36 @@ def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninter
                      runner.seed_file(seed, "elite"), f"seed{seed}_generations.csv"):
             assert ((directory / name).read_bytes()
                     == (out / "figure4" / "hopper" / "pgps" / name).read_bytes())
+
+
+def test_cells_side_by_side_compute_what_they_compute_in_turn(uninterrupted, tmp_path, cache):
+    """Two cells at a time, each in a process of its own: the cell that runs gives the
+    results of the in-turn run, byte for byte; the one that fails is named, after the other
+    has finished."""
+    out, (result,) = uninterrupted
+    refused = tmp_path / "figure4" / "hopper" / "cemrl"
+    refused.mkdir(parents=True)
+    (refused / runner.RESULT).write_text(json.dumps({"settings": {"steps": 1, "config": {}}}))
+    with pytest.raises(RunFailed, match=r"1 cell\(s\) failed: hopper cemrl: .* other settings"):
+        command.run("figure4", tmp_path, BUDGET, tasks=["hopper"], configs=["pgps", "cemrl"],
+                    progress=False, concurrent=2, child_environ=cli_env(cache))
+    cell = tmp_path / "figure4" / "hopper" / "pgps"
+    assert {**json.loads((cell / runner.RESULT).read_text()), "wall_s": 0} == {
+        **result, "wall_s": 0}
+    for seed in (1, 2):
+        for name in (runner.seed_file(seed), runner.seed_file(seed, "td3"),
+                     f"seed{seed}_generations.csv"):
+            assert ((cell / name).read_bytes()
+                    == (out / "figure4" / "hopper" / "pgps" / name).read_bytes())
+
+
+def test_slots_are_placed_on_the_gpus_in_turn():
+    five = side_by_side.placements(5, "gpu", 2, None)
+    assert [p["CUDA_VISIBLE_DEVICES"] for p in five] == ["0", "1", "0", "1", "0"]
+    assert {p["XLA_PYTHON_CLIENT_MEM_FRACTION"] for p in five} == {"0.300"}
+    assert [p["CUDA_VISIBLE_DEVICES"] for p in side_by_side.placements(3, "gpu", 2, "4,6")] == [
+        "4", "6", "4"]
+    assert side_by_side.placements(2, "cpu", 1, None) == [{}, {}]
 
 
 def test_seeds_are_split_over_the_devices(tmp_path):

@@ -1,10 +1,11 @@
-"""`python -m pgps_jax.experiments.paper <experiment>`: run an experiment's cells in turn.
+"""`python -m pgps_jax.experiments.paper <experiment>`: run the cells of an experiment.
 
     python -m pgps_jax.experiments.paper figure4                      # 5 tasks × 5 seeds, 1M steps
     python -m pgps_jax.experiments.paper table1 --tasks ant --seeds 10
     python -m pgps_jax.experiments.paper figure4 --steps 20000 --set pop_size=4 --out runs/paper
     python -m pgps_jax.experiments.paper figure4 --tasks ant --env floor_contacts=every_geom \
         --out runs/ant_contacts
+    python -m pgps_jax.experiments.paper figure4 --concurrent 5   # 5 cells at once, own processes
     python -m pgps_jax.experiments.paper figure4 --report         # figures and tables only
 
 Results go to `<out>/<experiment>/<task>/<config>/` (`runner`), the final returns of every
@@ -16,9 +17,11 @@ done cells are skipped and a cut-off cell continues from its last checkpoint.
 import argparse
 import dataclasses
 import json
+import os
 import pathlib
 import sys
 import typing
+from typing import Optional
 
 import numpy as np
 import yaml
@@ -30,6 +33,7 @@ from pgps_jax.cli.errors import EXIT_INTERRUPTED, UsageError, print_error, repor
 from pgps_jax.cli.run_config import coerce
 from pgps_jax.envs import make_env
 from pgps_jax.envs.physics import Physics
+from pgps_jax.experiments.paper import side_by_side
 from pgps_jax.experiments.paper.grid import EXPERIMENTS, Cell, cells
 from pgps_jax.experiments.paper.report import REFERENCE, write_report
 from pgps_jax.experiments.paper.runner import RESULT, Budget, run_cell
@@ -43,10 +47,12 @@ def cell_directory(out: pathlib.Path, experiment: str, cell: Cell) -> pathlib.Pa
 
 
 def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=(),
-        progress: bool = True, reference: pathlib.Path = REFERENCE) -> list[dict]:
+        progress: bool = True, reference: pathlib.Path = REFERENCE, concurrent: int = 1,
+        child_environ: Optional[dict] = None) -> list[dict]:
     """Runs every cell of `experiment` (those of `tasks` and `configs` where given) and writes
     the table of final returns and the report (`reference`: the authors' curves); returns the
-    cells' results."""
+    cells' results. With `concurrent` > 1, that many cells at a time, each in a process of its
+    own (`side_by_side`; `child_environ`: their environment, by default this process's)."""
     try:
         chosen = cells(experiment, tuple(tasks), tuple(configs))
     except ValueError as e:
@@ -72,20 +78,47 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
             raise UsageError(f"--steps {budget.steps} does not exceed the random warm-up "
                              f"(warmup_steps={config.warmup_steps})")
     require_reference(reference)
-    results = []
-    for cell in chosen:
-        with tqdm(total=budget.steps * budget.seeds, unit="step", unit_scale=True,
-                  disable=not progress, desc=f"{experiment} {cell.task} {cell.config}") as bar:
-            def advanced(generation, steps):
-                bar.update(int(np.minimum(steps, budget.steps).sum()) - bar.n)
-                bar.set_postfix_str(f"gen {generation}", refresh=False)
-            results.append(run_cell(cell, cell_directory(out, experiment, cell), budget,
-                                    advanced))
+    if concurrent > 1:
+        results = _run_side_by_side(experiment, out, budget, chosen, concurrent, progress,
+                                    dict(os.environ if child_environ is None else child_environ))
+    else:
+        results = [_run_in_turn(experiment, out, budget, cell, progress) for cell in chosen]
     write_final_returns(out / experiment / FINAL_RETURNS,
                         [json.loads(p.read_text())
                          for p in sorted((out / experiment).glob(f"*/*/{RESULT}"))])
     write_report(experiment, out, reference)
     return results
+
+
+def _run_in_turn(experiment: str, out: pathlib.Path, budget: Budget, cell: Cell,
+                 progress: bool) -> dict:
+    """Runs `cell` in this process, with a progress bar of its own."""
+    with tqdm(total=budget.steps * budget.seeds, unit="step", unit_scale=True,
+              disable=not progress, desc=f"{experiment} {cell.task} {cell.config}") as bar:
+        def advanced(generation, steps):
+            bar.update(int(np.minimum(steps, budget.steps).sum()) - bar.n)
+            bar.set_postfix_str(f"gen {generation}", refresh=False)
+        return run_cell(cell, cell_directory(out, experiment, cell), budget, advanced)
+
+
+def _run_side_by_side(experiment: str, out: pathlib.Path, budget: Budget, chosen, concurrent,
+                      progress: bool, environ: dict) -> list[dict]:
+    """Runs the cells `concurrent` at a time in processes of their own, with one progress bar
+    over all of them."""
+    import jax
+    slots = side_by_side.placements(min(concurrent, len(chosen)), jax.default_backend(),
+                                    jax.local_device_count(),
+                                    environ.get("CUDA_VISIBLE_DEVICES"))
+    reached = {}
+    with tqdm(total=budget.steps * budget.seeds * len(chosen), unit="step", unit_scale=True,
+              disable=not progress, desc=f"{experiment}: {len(chosen)} cells, "
+              f"{len(slots)} at a time") as bar:
+        def advanced(cell, generation, steps):
+            reached[cell.task, cell.config] = int(np.minimum(steps, budget.steps).sum())
+            bar.update(sum(reached.values()) - bar.n)
+        return side_by_side.run_side_by_side(
+            experiment, budget, chosen, lambda c: cell_directory(out, experiment, c),
+            slots, environ, advanced)
 
 
 def require_reference(reference: pathlib.Path) -> None:
@@ -158,6 +191,10 @@ def main(argv=None) -> int:
                         help="make_env keyword arguments: start_pose or Physics fields "
                              "(iterations, floor_contacts, ...)")
     parser.add_argument("--out", type=pathlib.Path, default=OUT)
+    parser.add_argument("--concurrent", type=int, default=1, metavar="K",
+                        help="cells in flight at a time, each in a process of its own, placed "
+                             "on the GPUs in turn (default 1: in turn, in this process, each "
+                             "cell's seeds split over every GPU)")
     parser.add_argument("--no-progress", action="store_true")
     parser.add_argument("--report", action="store_true",
                         help="only draw the figures and tables from the results under --out")
@@ -175,7 +212,7 @@ def main(argv=None) -> int:
             for path in write_report(args.experiment, args.out, args.reference):
                 print(path)
             return 0
-        for name in ("steps", "seeds", "checkpoint_every"):
+        for name in ("steps", "seeds", "checkpoint_every", "concurrent"):
             if getattr(args, name) <= 0:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer")
         try:
@@ -188,8 +225,12 @@ def main(argv=None) -> int:
                         overrides=tuple(_assignments(args.set, "--set",
                                                      _hints(PGPSConfig)).items()),
                         env=tuple(_assignments(args.env, "--env", ENV_FIELDS).items()))
+        environ = dict(os.environ)
+        if args.concurrent > 1:  # this process only schedules: the GPUs' memory is the cells'
+            os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
         run(args.experiment, args.out, budget, args.tasks, args.configs,
-            progress=not args.no_progress, reference=args.reference)
+            progress=not args.no_progress, reference=args.reference,
+            concurrent=args.concurrent, child_environ=environ)
         return 0
 
     try:
