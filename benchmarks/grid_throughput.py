@@ -1,0 +1,146 @@
+"""Experiments per GPU-hour: the cost of a seed against the seeds vmapped in one program, and
+the wall-clock of a grid of cells run side by side.
+
+`seeds`: per task, one late-run generation (T = T_max, Q-filtering active, the paper's
+configuration) of S seeds vmapped in one program, for each S; its time, and the cost per seed
+relative to one seed alone (S = 1: 1.0; S seeds for the price of one: 1/S).
+
+`grid`: the Figure-4 PGPS cells through `python -m pgps_jax.experiments.paper figure4
+--configs pgps --concurrent K` (K cells at a time in processes of their own, placed on the
+visible GPUs in turn; CUDA's MPS daemon is recorded as running or not), timed from the
+command's start to its end, with each cell's own wall-clock from its `result.json`.
+
+    python -m benchmarks.grid_throughput seeds --tasks halfcheetah hopper --seeds 1 5 10 25 50
+    python -m benchmarks.grid_throughput grid --concurrent 5 --out runs/grid
+    python -m benchmarks.grid_throughput seeds --smoke    # tiny sizes: a CPU check of the script
+
+Entries are appended to `benchmarks/results/grid_throughput.json` after each measurement.
+"""
+
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+
+from benchmarks.timing import timed
+from pgps_jax.agent.config import EvaluationConfig, for_task
+from pgps_jax.agent.pgps import PGPS
+from pgps_jax.envs import TASKS, make_env
+
+RESULTS = pathlib.Path("benchmarks/results/grid_throughput.json")
+SMOKE = dict(pop_size=2, top_k=1, actor_hidden=(16,), critic_hidden=(16,), batch_size=16,
+             buffer_size=2000, warmup_steps=200, t_init=20, t_max=40, t_interval=400,
+             q_filter_start=400, sample_ratio=4, ss1_size=8, ss2_size=16)
+"""A tiny PGPS for --smoke (the tests' reduced configuration)."""
+
+
+def late_run_steps(config) -> int:
+    """The fewest env steps at which the episode limit is T_max and Q-filtering is on."""
+    increments = -(-(config.t_max - config.t_init) // config.t_increment)
+    return max(config.q_filter_start, increments * config.t_interval)
+
+
+def seeds_cost(task: str, seed_counts: list[int], smoke: bool) -> dict:
+    """One late-run generation of S seeds vmapped, for each S in `seed_counts`."""
+    config = for_task(task, **(SMOKE if smoke else {}))
+    agent = PGPS(config, make_env(task), EvaluationConfig())
+    late = late_run_steps(config)
+    step = jax.jit(jax.vmap(agent.generation_step))
+    rows = []
+    for seeds in seed_counts:
+        keys = jax.random.split(jax.random.PRNGKey(0), seeds)
+        state = jax.jit(jax.vmap(agent.init))(keys, keys)
+        state = state.replace(  # no test evaluation falls due: the generation alone
+            total_steps=jnp.full((seeds,), late, jnp.int32),
+            evaluation=state.evaluation.replace(
+                next_due=jnp.full((seeds,), 2**30, jnp.int32)))
+        compile_s, generation_s = timed(step, state, repeats=3)
+        rows.append({"seeds": seeds, "generation_s": generation_s, "compile_and_run_s": compile_s})
+        print(json.dumps({"task": task, **rows[-1]}), flush=True)
+    alone = rows[0]["generation_s"] / rows[0]["seeds"]
+    for row in rows:
+        row["cost_per_seed_vs_one"] = row["generation_s"] / row["seeds"] / alone
+    return {"kind": "seeds", "task": task, "pop_size": config.pop_size, "T": config.t_max,
+            "env_steps_at": late, "rows": rows}
+
+
+def mps_running() -> bool:
+    """Whether CUDA's MPS control daemon runs on this machine."""
+    for status in pathlib.Path("/proc").glob("[0-9]*/comm"):
+        try:
+            if status.read_text().strip() == "nvidia-cuda-mps":
+                return True
+        except OSError:
+            continue
+    return False
+
+
+def grid(tasks: list[str], concurrent: int, out: pathlib.Path, steps: int, seeds: int,
+         smoke: bool, environ: dict) -> dict:
+    """The Figure-4 PGPS cells of `tasks`, `concurrent` at a time, into `out` (which must not
+    hold them yet: a done cell would not run again)."""
+    done = [t for t in tasks if (out / "figure4" / t / "pgps" / "result.json").exists()]
+    if done:
+        sys.exit(f"{out} already holds done cells of {', '.join(done)}: use another --out")
+    command = [sys.executable, "-m", "pgps_jax.experiments.paper", "figure4", "--configs",
+               "pgps", "--tasks", *tasks, "--concurrent", str(concurrent), "--steps",
+               str(steps), "--seeds", str(seeds), "--out", str(out), "--no-progress"]
+    if smoke:
+        command += ["--set", *(f"{k}={list(v) if isinstance(v, tuple) else v}"
+                               for k, v in SMOKE.items()),
+                    "--eval", "every=200", "episodes=2", "steps=50"]
+    start = time.perf_counter()
+    subprocess.run(command, check=True, env=environ)
+    wall = time.perf_counter() - start
+    cells = []
+    for task in tasks:
+        result = json.loads((out / "figure4" / task / "pgps" / "result.json").read_text())
+        cells.append({"task": task, "wall_s": result["wall_s"], "device": result["device"],
+                      "final_mu": result["final"]["mu"]})
+    return {"kind": "grid", "tasks": tasks, "concurrent": concurrent, "steps": steps,
+            "seeds": seeds, "gpus": jax.local_device_count(), "mps": mps_running(),
+            "wall_s": wall, "cells": cells}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("measure", choices=["seeds", "grid"])
+    parser.add_argument("--tasks", nargs="*", default=list(TASKS))
+    parser.add_argument("--seeds", nargs="*", type=int, default=[1, 5, 10, 25, 50],
+                        help="seeds: the seed counts; grid: the first is the cells' seeds")
+    parser.add_argument("--concurrent", type=int, default=5)
+    parser.add_argument("--steps", type=int, default=1_000_000, help="grid: each cell's budget")
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/grid"))
+    parser.add_argument("--results", type=pathlib.Path, default=RESULTS)
+    parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
+    args = parser.parse_args()
+    environ = dict(os.environ)
+    if args.measure == "grid":  # this process only times: the GPUs' memory is the cells'
+        os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
+    header = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit}
+    saved = json.loads(args.results.read_text()) if args.results.exists() else []
+
+    def record(entry: dict) -> None:
+        saved.append({**header, **entry})
+        print(json.dumps(saved[-1]), flush=True)
+        args.results.parent.mkdir(parents=True, exist_ok=True)
+        args.results.write_text(json.dumps(saved, indent=1))
+
+    if args.measure == "seeds":
+        for task in args.tasks:
+            record(seeds_cost(task, args.seeds, args.smoke))
+    else:
+        record(grid(args.tasks, args.concurrent, args.out, args.steps if not args.smoke else 600,
+                    args.seeds[0], args.smoke, environ))
+
+
+if __name__ == "__main__":
+    main()
