@@ -239,6 +239,9 @@ def test_the_grids_hold_the_paper_s_cells():
     flags = ("pg_guides_ea", "ea_guides_pg", "q_filter", "increasing_steps")
     switched_on = [sum(dict(c.overrides).get(f, True) for f in flags) for c in table1]
     assert switched_on == [0, 1, 2, 3, 4]  # each model adds one coupling to the one before
+    ordered = grid.cells("figure4", tasks=("ant", "swimmer"), configs=("pgps", "td3"))
+    assert [(c.task, c.config) for c in ordered] == [  # the cells start in the tasks' order
+        ("ant", "pgps"), ("ant", "td3"), ("swimmer", "pgps"), ("swimmer", "td3")]
 
 
 @pytest.mark.parametrize("args, words", [
@@ -256,6 +259,7 @@ def test_the_grids_hold_the_paper_s_cells():
     (["figure4", "--set", "top_k=99"], ["top_k=99", "pop_size"]),
     (["figure4", "--eval", "often=3"], ["--eval 'often=3'", "every, episodes, steps"]),
     (["figure4", "--steps", "0"], ["--steps must be a positive integer"]),
+    (["figure4", "--concurrent", "0"], ["--concurrent must be a positive integer"]),
     (["figure4", "--env", "contacts=all"], ["--env 'contacts=all'", "floor_contacts"]),
     (["figure4", "--tasks", "ant", "--env", "floor_contacts=all"],
      ["--env on ant", "floor_contacts must be one of model, every_geom"]),

@@ -51,8 +51,9 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
         child_environ: Optional[dict] = None) -> list[dict]:
     """Runs every cell of `experiment` (those of `tasks` and `configs` where given) and writes
     the table of final returns and the report (`reference`: the authors' curves); returns the
-    cells' results. With `concurrent` > 1, that many cells at a time, each in a process of its
-    own (`side_by_side`; `child_environ`: their environment, by default this process's)."""
+    cells' results, in the order of `tasks` where given. With `concurrent` > 1, that many
+    cells at a time, each in a process of its own (`side_by_side`; `child_environ`: their
+    environment, by default this process's)."""
     try:
         chosen = cells(experiment, tuple(tasks), tuple(configs))
     except ValueError as e:

@@ -53,8 +53,8 @@ EXPERIMENTS: dict[str, tuple[Cell, ...]] = {
 
 def cells(experiment: str, tasks: tuple[str, ...] = (), configs: tuple[str, ...] = ()
           ) -> tuple[Cell, ...]:
-    """The cells of `experiment`, only those of `tasks` and `configs` where given; ValueError
-    naming the valid choices otherwise."""
+    """The cells of `experiment`, only those of `tasks` (in their order: the order the cells
+    start in) and `configs` where given; ValueError naming the valid choices otherwise."""
     if experiment not in EXPERIMENTS:
         raise ValueError(f"unknown experiment {experiment!r}; valid: {', '.join(EXPERIMENTS)}")
     grid = EXPERIMENTS[experiment]
@@ -64,5 +64,6 @@ def cells(experiment: str, tasks: tuple[str, ...] = (), configs: tuple[str, ...]
         if unknown:
             raise ValueError(f"{experiment} has no {kind} {', '.join(unknown)}; valid: "
                              f"{', '.join(sorted(valid))}")
-    return tuple(c for c in grid if (not tasks or c.task in tasks)
-                 and (not configs or c.config in configs))
+    chosen = [c for c in grid if (not tasks or c.task in tasks)
+              and (not configs or c.config in configs)]
+    return tuple(sorted(chosen, key=lambda c: tasks.index(c.task)) if tasks else chosen)

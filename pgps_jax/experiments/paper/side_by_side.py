@@ -45,22 +45,24 @@ def placements(concurrent: int, platform: str, devices: int,
 
 
 def run_side_by_side(experiment: str, budget: Budget, cells: Sequence[Cell],
-                     directory_of: Callable[[Cell], pathlib.Path], slots: list[dict], environ: dict,
-                     on_progress: Callable[[Cell, int, list], None]) -> list[dict]:
+                     directory_of: Callable[[Cell], pathlib.Path], slots: list[dict],
+                     environ: dict, on_progress: Callable[[Cell, int, list], None]) -> list[dict]:
     """Runs `cells` with len(slots) of them at a time, each in a child process with `environ`
     and its slot's variables; `on_progress(cell, generation, env_steps)` after each
     generation of any. Returns the results in the order of `cells`; RunFailed naming every
     cell that failed (after the others have finished)."""
-    queue = list(enumerate(cells))
+    jobs = list(enumerate(cells))
+    queue = jobs[len(slots):]  # slot s starts cell s, then takes the next as it comes free
     results, failures, children = [None] * len(cells), [], []
+    stopping = threading.Event()
     lock = threading.Lock()
 
-    def work(slot: dict) -> None:
-        while True:
+    def work(slot: dict, job) -> None:
+        while job is not None:
+            index, cell = job
             with lock:
-                if not queue:
+                if stopping.is_set():
                     return
-                index, cell = queue.pop(0)
                 child = subprocess.Popen(
                     [sys.executable, "-m", __name__], stdin=subprocess.PIPE,
                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**environ, **slot})
@@ -77,8 +79,10 @@ def run_side_by_side(experiment: str, budget: Budget, cells: Sequence[Cell],
                     results[index] = outcome
                 else:
                     failures.append(f"{cell.task} {cell.config}: {outcome}")
+                job = queue.pop(0) if queue else None
 
-    threads = [threading.Thread(target=work, args=(slot,), daemon=True) for slot in slots]
+    threads = [threading.Thread(target=work, args=(slot, job), daemon=True)
+               for slot, job in zip(slots, jobs)]
     for thread in threads:
         thread.start()
     try:
@@ -86,7 +90,7 @@ def run_side_by_side(experiment: str, budget: Budget, cells: Sequence[Cell],
             thread.join()
     except KeyboardInterrupt:  # each child stops; its cell continues from its checkpoint
         with lock:
-            queue.clear()
+            stopping.set()
             for child in children:
                 if child.poll() is None:
                     child.send_signal(signal.SIGINT)
