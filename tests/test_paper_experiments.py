@@ -94,22 +94,27 @@ def test_each_seed_is_reported_at_its_own_budget(uninterrupted):
     assert not (cell / runner.AT_BUDGET).exists()
 
 
-def test_at_budget_keeps_each_seed_s_first_actors_across_a_restart(tmp_path):
+def test_at_budget_keeps_the_records_up_to_the_generation_a_cell_continues_from(tmp_path):
     class Agent:
         def evaluated_actors(self, state):
             return state
 
     budget = runner.Budget(steps=500, seeds=2)
-    first = runner.AtBudget.read(tmp_path, budget.seeds)
-    first.record(np.array([400, 300]), np.zeros((2, 3, 4)), Agent(), budget, tmp_path)
+    first = runner.AtBudget.read(tmp_path, budget.seeds, 0)
+    first.record(1, np.array([400, 300]), np.zeros((2, 3, 4)), Agent(), budget, tmp_path)
     assert not (tmp_path / runner.AT_BUDGET).exists()
-    first.record(np.array([520, 450]), np.ones((2, 3, 4)), Agent(), budget, tmp_path)
-    restarted = runner.AtBudget.read(tmp_path, budget.seeds)
-    restarted.record(np.array([560, 510]), np.full((2, 3, 4), 2.0), Agent(), budget, tmp_path)
-    assert restarted.steps.tolist() == [520, 510]
+    first.record(2, np.array([520, 450]), np.ones((2, 3, 4)), Agent(), budget, tmp_path)
+    continued = runner.AtBudget.read(tmp_path, budget.seeds, 2)
+    continued.record(3, np.array([560, 510]), np.full((2, 3, 4), 2.0), Agent(), budget,
+                     tmp_path)
+    assert continued.steps.tolist() == [520, 510]
     sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    actors = np.asarray(restarted.actors_of(np.full((2, 3, 4), 3.0), Agent(), sharding))
+    actors = np.asarray(continued.actors_of(np.full((2, 3, 4), 3.0), Agent(), sharding))
     np.testing.assert_array_equal(actors, np.stack([np.ones((3, 4)), np.full((3, 4), 2.0)]))
+    # from the checkpoint of generation 2 again: seed 2's record (generation 3) is made anew
+    again = runner.AtBudget.read(tmp_path, budget.seeds, 2)
+    assert again.steps.tolist() == [520, 0] and again.actors[1] is None
+    assert runner.AtBudget.read(tmp_path, budget.seeds, 0).actors == [None, None]
 
 
 def test_a_done_cell_is_not_run_again(uninterrupted):
@@ -183,10 +188,13 @@ def test_cells_side_by_side_compute_what_they_compute_in_turn(uninterrupted, tmp
     out, (result,) = uninterrupted
     refused = tmp_path / "figure4" / "hopper" / "cemrl"
     refused.mkdir(parents=True)
-    (refused / runner.RESULT).write_text(json.dumps({"settings": {"steps": 1, "config": {}}}))
+    (refused / runner.RESULT).write_bytes(  # a result of another cell
+        (out / "figure4" / "hopper" / "pgps" / runner.RESULT).read_bytes())
     with pytest.raises(RunFailed, match=r"1 cell\(s\) failed: hopper cemrl: .* other settings"):
         command.run("figure4", tmp_path, BUDGET, tasks=["hopper"], configs=["pgps", "cemrl"],
                     progress=False, concurrent=2, child_environ=cli_env(cache))
+    _, rows = read_csv(tmp_path / "figure4" / command.FINAL_RETURNS)  # written all the same
+    assert [(r["config"], r["seed"]) for r in rows] == [("pgps", "1"), ("pgps", "2")] * 2
     cell = tmp_path / "figure4" / "hopper" / "pgps"
     assert {**json.loads((cell / runner.RESULT).read_text()), "wall_s": 0} == {
         **result, "wall_s": 0}
@@ -197,10 +205,21 @@ def test_cells_side_by_side_compute_what_they_compute_in_turn(uninterrupted, tmp
                     == (out / "figure4" / "hopper" / "pgps" / name).read_bytes())
 
 
+def test_importing_the_commands_starts_no_jax_backend():
+    """The side-by-side command's own process leaves the GPUs' memory to its cells: nothing
+    it imports makes a device array (a GPU backend, once started, preallocates its memory)."""
+    code = ("import pgps_jax.experiments.paper.command, pgps_jax.train, pgps_jax.evaluate, "
+            "benchmarks.grid_throughput; from jax._src import xla_bridge; "
+            "print(xla_bridge.backends_are_initialized())")
+    result = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
+                            text=True, timeout=300)
+    assert result.stdout.strip() == "False", result.stderr[-2000:]
+
+
 def test_slots_are_placed_on_the_gpus_in_turn():
     five = side_by_side.placements(5, "gpu", 2, None)
     assert [p["CUDA_VISIBLE_DEVICES"] for p in five] == ["0", "1", "0", "1", "0"]
-    assert {p["XLA_PYTHON_CLIENT_MEM_FRACTION"] for p in five} == {"0.300"}
+    assert {p[side_by_side.MEMORY_FRACTION] for p in five} == {"0.300"}
     assert [p["CUDA_VISIBLE_DEVICES"] for p in side_by_side.placements(3, "gpu", 2, "4,6")] == [
         "4", "6", "4"]
     assert side_by_side.placements(2, "cpu", 1, None) == [{}, {}]

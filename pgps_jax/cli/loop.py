@@ -134,7 +134,7 @@ class Finished:
     unfinished_step: np.ndarray
     """[] or [S] env steps at which it began."""
     final: dict
-    """The evaluation of the state the run ends with."""
+    """The final evaluation: of the actors of the state the run ends with, or of those given."""
 
 
 def finish(programs: Programs, state: TrainState, final_key: Optional[jax.Array] = None,

@@ -13,8 +13,9 @@ task; it exists so the whole algorithm can be exercised in seconds on a CPU.
 from brax.envs.base import Env, State
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-_GOAL = jnp.array([1.0, 0.5])
+_GOAL = np.array([1.0, 0.5], np.float32)  # numpy: importing starts no JAX backend
 _BOX = 2.0
 
 

@@ -79,16 +79,18 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
             raise UsageError(f"--steps {budget.steps} does not exceed the random warm-up "
                              f"(warmup_steps={config.warmup_steps})")
     require_reference(reference)
-    if concurrent > 1:
-        results = _run_side_by_side(experiment, out, budget, chosen, concurrent, progress,
-                                    dict(os.environ if child_environ is None else child_environ))
-    else:
-        results = [_run_in_turn(experiment, out, budget, cell, progress) for cell in chosen]
-    write_final_returns(out / experiment / FINAL_RETURNS,
-                        [json.loads(p.read_text())
-                         for p in sorted((out / experiment).glob(f"*/*/{RESULT}"))])
-    write_report(experiment, out, reference)
-    return results
+    try:
+        if concurrent > 1:
+            return _run_side_by_side(experiment, out, budget, chosen, concurrent, progress,
+                                     dict(os.environ if child_environ is None
+                                          else child_environ))
+        return [_run_in_turn(experiment, out, budget, cell, progress) for cell in chosen]
+    finally:  # the tables and figures of every done cell, whatever became of the others
+        done = [json.loads(p.read_text())
+                for p in sorted((out / experiment).glob(f"*/*/{RESULT}"))]
+        if done:
+            write_final_returns(out / experiment / FINAL_RETURNS, done)
+            write_report(experiment, out, reference)
 
 
 def _run_in_turn(experiment: str, out: pathlib.Path, budget: Budget, cell: Cell,
@@ -99,7 +101,9 @@ def _run_in_turn(experiment: str, out: pathlib.Path, budget: Budget, cell: Cell,
         def advanced(generation, steps):
             bar.update(int(np.minimum(steps, budget.steps).sum()) - bar.n)
             bar.set_postfix_str(f"gen {generation}", refresh=False)
-        return run_cell(cell, cell_directory(out, experiment, cell), budget, advanced)
+        result = run_cell(cell, cell_directory(out, experiment, cell), budget, advanced)
+        advanced(result["generations"], np.asarray(result["env_steps"]))  # a cell done before
+        return result
 
 
 def _run_side_by_side(experiment: str, out: pathlib.Path, budget: Budget, chosen, concurrent,

@@ -99,7 +99,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
         directory.mkdir(parents=True, exist_ok=True)
     if (directory / RESULT).exists():
         result = json.loads((directory / RESULT).read_text())
-        _require_same(directory, result["settings"], settings)
+        _require_same(directory, result["settings"], settings, done=True)
         return result
     agent = make_agent(cell.algo, config, make_env(cell.task, **dict(budget.env)),
                        budget.evaluation)
@@ -132,8 +132,8 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             programs = loop.Programs.compile(agent, keys, eval_keys, seeds=True,
                                              sharding=sharding, restored=shapes)
         steps = np.asarray(jax.device_get(state.total_steps))
-        at_budget = AtBudget.read(directory, budget.seeds)
-        at_budget.record(steps, state, agent, budget, directory)
+        at_budget = AtBudget.read(directory, budget.seeds, generation)
+        at_budget.record(generation, steps, state, agent, budget, directory)
         population_keys = [m.key for m in _population_metrics(agent)]
         while steps[:budget.seeds].min() < budget.steps:
             state, done = loop.generation(programs, state)
@@ -145,7 +145,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                 populations[seed].append([generation] + [
                     np.asarray(m[key][seed]).item() for key in population_keys])
             steps = np.asarray(m["gen/total_steps"])
-            at_budget.record(steps, state, agent, budget, directory)
+            at_budget.record(generation, steps, state, agent, budget, directory)
             if generation % budget.checkpoint_every == 0:
                 checkpoints.save(generation, state, {
                     "settings": settings, "curves": curves, "populations": populations,
@@ -180,30 +180,39 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
 
 @dataclasses.dataclass
 class AtBudget:
-    """Each seed's evaluated actors [A, P] and env steps when it first reached the budget.
+    """Each seed's evaluated actors [A, P], env steps and generation when it first reached
+    the budget.
 
     The seeds of a cell train in one batch until the last of them reaches the budget (with
     early terminations, seeds take different numbers of generations to get there); a seed's
     final evaluation is of its actors at its own budget, as its curve ends there. Kept in
-    the cell's `AT_BUDGET` file, so that a cut-off cell continues with them (a cell resumed
-    from a checkpoint before a seed's record reaches the same record again: same seed, same
-    machine, same result)."""
+    the cell's `AT_BUDGET` file for a cut-off cell: a cell continued from its checkpoint at
+    generation g keeps the records of generations up to g and makes the later ones again
+    from its replayed generations (which a GPU need not replay bit for bit)."""
 
     actors: list
     """Per seed: its actors (numpy), or None while it is below the budget."""
     steps: np.ndarray
     """[seeds] env steps when reached (0 while below)."""
+    generations: np.ndarray
+    """[seeds] the generation after which it was reached (-1 while below)."""
 
     @classmethod
-    def read(cls, directory: pathlib.Path, seeds: int) -> "AtBudget":
+    def read(cls, directory: pathlib.Path, seeds: int, generation: int) -> "AtBudget":
+        """The records of generations up to `generation` (the one the cell continues from)."""
+        kept = cls([None] * seeds, np.zeros(seeds, np.int64), np.full(seeds, -1, np.int64))
         path = directory / AT_BUDGET
-        if not path.exists():
-            return cls([None] * seeds, np.zeros(seeds, np.int64))
-        with np.load(path) as saved:
-            steps = saved["steps"]
-            return cls([saved[f"seed{i}"] if steps[i] else None for i in range(seeds)], steps)
+        if path.exists():
+            with np.load(path) as saved:
+                for i in np.flatnonzero((saved["generations"] >= 0)
+                                        & (saved["generations"] <= generation)):
+                    kept.actors[i] = saved[f"seed{i + 1}"]
+                    kept.steps[i], kept.generations[i] = (saved["steps"][i],
+                                                          saved["generations"][i])
+        return kept
 
-    def record(self, steps: np.ndarray, state, agent, budget, directory: pathlib.Path):
+    def record(self, generation: int, steps: np.ndarray, state, agent, budget,
+               directory: pathlib.Path) -> None:
         """Records the seeds that have reached the budget since the last call."""
         reached = [i for i in range(budget.seeds)
                    if self.actors[i] is None and steps[i] >= budget.steps]
@@ -211,9 +220,10 @@ class AtBudget:
             return
         actors = np.asarray(jax.device_get(jax.vmap(agent.evaluated_actors)(state)))
         for i in reached:
-            self.actors[i], self.steps[i] = actors[i], steps[i]
-        arrays = {f"seed{i}": a for i, a in enumerate(self.actors) if a is not None}
-        rundir.write_atomic(directory / AT_BUDGET, _npz_bytes(steps=self.steps, **arrays))
+            self.actors[i], self.steps[i], self.generations[i] = actors[i], steps[i], generation
+        arrays = {f"seed{i + 1}": a for i, a in enumerate(self.actors) if a is not None}
+        rundir.write_atomic(directory / AT_BUDGET, _npz_bytes(
+            steps=self.steps, generations=self.generations, **arrays))
 
     def actors_of(self, state, agent, sharding) -> jax.Array:
         """[batch, A, P]: the recorded actors; the padding seeds' current ones."""
@@ -243,11 +253,15 @@ _ADDED_CONFIG_FIELDS = ("elitism", "policy_delay", "exploration_noise")
 """PGPSConfig fields that cells started before they existed ran under at their defaults."""
 
 
-def _require_same(directory: pathlib.Path, saved: dict, now: dict) -> None:
-    """UsageError naming the settings in which the cell in `directory` differs from `now`."""
+def _require_same(directory: pathlib.Path, saved: dict, now: dict, done: bool = False
+                  ) -> None:
+    """UsageError naming the settings in which the cell in `directory` differs from `now`
+    (for a `done` cell, the devices its seeds were split over do not count: a cell continued
+    from a checkpoint needs its batch, a result does not)."""
     saved = {**_ADDED_SETTINGS, **saved}
+    ignored = {"config"} | ({"devices"} if done else set())
     differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now" for key in now
-              if key != "config" and saved.get(key) != now[key]]
+              if key not in ignored and saved.get(key) != now[key]]
     added = {f.name: f.default for f in dataclasses.fields(PGPSConfig)
              if f.name in _ADDED_CONFIG_FIELDS}
     saved_config = {**added, **saved["config"]}
