@@ -10,14 +10,18 @@ from train_cli import with_fast_compile_flags, run_here
 # The tests' programs, theirs and their CLI subprocesses', compile once and run briefly: XLA
 # spends less time optimising them (where this JAX's XLA knows the flags).
 os.environ["XLA_FLAGS"] = with_fast_compile_flags(os.environ.get("XLA_FLAGS", ""))
+# On a GPU, the workers, their CLI subprocesses and the experiment runner's cells share it.
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 import jax  # noqa: E402  (after XLA_FLAGS)
 import pytest  # noqa: E402
 
 # The maths tests compare with float32 numpy; a GPU would otherwise multiply in TF32. (Not
 # set on a CPU, which multiplies in float32 anyway, so that the tests' in-process runs and
-# their CLI subprocesses compile the same programs and share the compilation cache.)
+# their CLI subprocesses compile the same programs and share the compilation cache; set for
+# the subprocesses too, which compute what the tests' own programs compute.)
 if jax.default_backend() != "cpu":
+    os.environ["JAX_DEFAULT_MATMUL_PRECISION"] = "highest"
     jax.config.update("jax_default_matmul_precision", "highest")
 
 REDUCED = ("seed=1", "total_steps=600", "eval_every=200", "checkpoint_every=2",
