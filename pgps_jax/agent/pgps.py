@@ -36,6 +36,10 @@ from pgps_jax.agent.config import PGPSConfig
 from pgps_jax.agent.metrics import Metric, generation_metrics, population_return_key
 from pgps_jax.agent.networks import first_q, flatten
 
+PHASES = ("population_generation", "actors_evaluation", "cem_update", "td3_update")
+"""The parts of a generation whose computational time Table 1 of the paper splits, as JAX
+named scopes of the programs' operations (metadata only: they change nothing computed)."""
+
 
 def episode_limit(total_steps: jax.Array, config: PGPSConfig) -> jax.Array:
     """Eq. 4 with floor division: T = min(T_init + 100·⌊steps / T_interval⌋, T_max)."""
@@ -122,10 +126,12 @@ class PGPS(Agent):
         n = config.pop_size
         td3_turn = ((state.generation + 1) % config.td3_to_cem_period) == 0
 
-        population = self.population(state, sample_key, candidate_key, states_key)
-        td3_flat = flatten(state.td3.actor)
-        if config.pg_guides_ea:
-            population = jnp.where(td3_turn, population.at[n - 1].set(td3_flat), population)
+        with jax.named_scope("population_generation"):
+            population = self.population(state, sample_key, candidate_key, states_key)
+            td3_flat = flatten(state.td3.actor)
+            if config.pg_guides_ea:
+                population = jnp.where(td3_turn, population.at[n - 1].set(td3_flat),
+                                       population)
         if state.kept_population is not None:
             state = state.replace(kept_population=population)  # with the injected TD3 actor
         limit = episode_limit(state.total_steps, config)
@@ -133,8 +139,9 @@ class PGPS(Agent):
         if config.td3_probe:
             actors = jnp.concatenate([population, td3_flat[None]])
             limits = jnp.append(limits, jnp.where(td3_turn, limit, 0))
-        state, episodes, transitions, valid, report = self.rollout(
-            state, actors, limits, reset_key, rows=config.t_max)
+        with jax.named_scope("actors_evaluation"):
+            state, episodes, transitions, valid, report = self.rollout(
+                state, actors, limits, reset_key, rows=config.t_max)
         state = state.replace(key=next_key)
         return state, Played(population=population, episodes=episodes,
                              transitions=transitions, valid=valid, limit=limit,
@@ -149,13 +156,15 @@ class PGPS(Agent):
         config = self.config
         n = config.pop_size
         episodes, td3_turn = played.episodes, played.td3_turn
-        buffer = replay.add(state.buffer, played.transitions, played.valid)
+        with jax.named_scope("td3_update"):
+            buffer = replay.add(state.buffer, played.transitions, played.valid)
         interaction_steps = episodes.lengths.sum()
 
         returns = episodes.returns[:n]
-        new_cem = cem.tell(state.cem, played.population, returns, top_k=config.top_k,
-                           sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
-                           divide_by_k=config.cem_divide_by_k)
+        with jax.named_scope("cem_update"):
+            new_cem = cem.tell(state.cem, played.population, returns, top_k=config.top_k,
+                               sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
+                               divide_by_k=config.cem_divide_by_k)
         td3_in_episodes = config.pg_guides_ea or config.td3_probe
         td3_return = self._td3_return(episodes.returns)
         if config.ea_guides_pg:
@@ -170,9 +179,10 @@ class PGPS(Agent):
         td3_state = state.td3
         if config.target_actor_from_elite:
             td3_state = td3_state.replace(actor_target=elite)
-        new_td3, beta, losses = self.td3.train(td3_state, buffer, played.train_key,
-                                               num_update, max_update, elite, guided,
-                                               state.beta)
+        with jax.named_scope("td3_update"):
+            new_td3, beta, losses = self.td3.train(td3_state, buffer, played.train_key,
+                                                   num_update, max_update, elite, guided,
+                                                   state.beta)
         generation = state.generation + 1
         new_state = state.replace(cem=new_cem, td3=new_td3, buffer=buffer, beta=beta,
                                   generation=generation,

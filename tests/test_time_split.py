@@ -1,0 +1,43 @@
+"""Table 1's time split (`benchmarks.time_split`): the generation program's operations carry
+the four phases of the paper as named scopes, and a profile's device time is attributed to
+them."""
+
+import glob
+import os
+
+import jax
+import jax.numpy as jnp
+
+from benchmarks.time_split import phases_of, split
+from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
+from pgps_jax.agent.pgps import PGPS, PHASES
+from pgps_jax.envs import make_env
+
+
+def test_the_generation_program_carries_every_phase_of_table1():
+    config = PGPSConfig(pop_size=2, top_k=1, actor_hidden=(8,), critic_hidden=(8,),
+                        batch_size=8, buffer_size=500, warmup_steps=40, t_init=10, t_max=10,
+                        q_filter_start=0, sample_ratio=2, ss1_size=4, ss2_size=8)
+    agent = PGPS(config, make_env("point"), EvaluationConfig(every=100, episodes=1, steps=10))
+    state = jax.jit(agent.init)(jax.random.PRNGKey(0), jax.random.PRNGKey(1))
+    text = jax.jit(agent.generation_step).lower(state).compile().as_text()
+    assert set(PHASES) <= set(phases_of(text).values())
+
+
+def test_a_profile_s_time_goes_to_the_scopes_of_its_operations(tmp_path):
+    def work(x):
+        with jax.named_scope("td3_update"):
+            y = jnp.tanh(x @ x)
+        with jax.named_scope("cem_update"):
+            return y, jnp.sin(y).sum(0)
+
+    x = jax.device_put(jnp.ones((256, 256)), jax.devices("cpu")[0])  # the CPU's trace
+    compiled = jax.jit(work).lower(x).compile()
+    jax.block_until_ready(compiled(x))
+    with jax.profiler.trace(str(tmp_path), create_perfetto_trace=True):
+        for _ in range(3):
+            jax.block_until_ready(compiled(x))
+    trace, = glob.glob(os.path.join(tmp_path, "**", "perfetto_trace.json.gz"), recursive=True)
+    ms = split(trace, phases_of(compiled.as_text()), 3)
+    assert ms["td3_update"] > 0 and ms["cem_update"] > 0
+    assert ms["population_generation"] == ms["actors_evaluation"] == 0
