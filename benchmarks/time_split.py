@@ -8,7 +8,10 @@ device operation of the trace is attributed to the phase whose JAX named scope
 (`pgps_jax.agent.pgps.PHASES`) its HLO instruction carries; the rest (key splitting,
 metrics) is `other`. Times are per generation and, as in the paper, normalised by the Base
 model's total. A late-run generation stands for the whole run here: the phases' shares at
-T = T_max, not their sums over a run's schedule of T.
+T = T_max, not their sums over a run's schedule of T (so the `+ increasing steps` row cannot
+show what its schedule saves). `actors_evaluation` includes stepping the idle slots of the
+test evaluation beside the population; a kernel that XLA fused from two phases counts for the
+phase of its output. The operations that no phase names are listed under `unattributed`.
 
     python -m benchmarks.time_split --tasks halfcheetah walker2d ant
     python -m benchmarks.time_split --tasks halfcheetah --smoke   # tiny sizes: a CPU check
@@ -25,6 +28,7 @@ import os
 import re
 import subprocess
 import tempfile
+from typing import Optional
 
 import jax
 import jax.numpy as jnp
@@ -37,9 +41,18 @@ from pgps_jax.experiments.paper.grid import cells
 
 SMOKE = dict(t_init=10, t_max=20, t_interval=1000, buffer_size=5000, warmup_steps=200,
              q_filter_start=400, actor_hidden=(16, 16), critic_hidden=(16, 16), sample_ratio=2)
-_INSTRUCTION = re.compile(r'^\s*(?:ROOT )?%?([\w.\-]+) = .*metadata=\{[^}]*op_name="([^"]*)"')
-_CONTAINERS = ("while", "conditional", "call")
+_COMPUTATION = re.compile(r"^\s*(?:ENTRY )?%?([\w.\-]+) .*\{\s*$")
+_INSTRUCTION = re.compile(r"^\s*(?:ROOT )?%?([\w.\-]+) = ")
+_OP_NAME = re.compile(r'metadata=\{[^}]*op_name="([^"]*)"')
+_CALLED = re.compile(r"(?:calls|body|condition|to_apply|branch_computations|true_computation|"
+                     r"false_computation)=\{?((?:%?[\w.\-]+(?:, )?)+)\}?")
+_CONTAINER = re.compile(r" = .*?\s(?:while|conditional|call)\(")
 """Instructions whose time is that of the operations they run (not counted twice)."""
+_PHASE = {p: re.compile(rf"(^|[/(]){p}([)/]|$)") for p in PHASES}
+"""A phase's scope in an op_name path, also as vmap(<scope>) in a vmapped program."""
+_EVENTS = 1 << 26
+"""Device events a GPU profile keeps (XLA's default, 2M, holds two halfcheetah generations
+with almost none to spare)."""
 
 
 def _key(name: str) -> str:
@@ -47,36 +60,91 @@ def _key(name: str) -> str:
     return re.sub(r"[.\-]", "_", name)
 
 
-def phases_of(hlo_text: str) -> dict[str, str]:
-    """The phase of every HLO instruction of a compiled program (by its name's `_key`)."""
-    phases = {}
+def phases_of(hlo_text: str) -> dict[str, Optional[str]]:
+    """The phase of every HLO instruction of a compiled program (by its name's `_key`); None
+    for a loop, conditional or call, whose time is that of the instructions it runs.
+
+    An instruction's phase is the scope in its op_name; one without (a fusion or copy that a
+    compiler pass made) takes the phase of the instructions it calls, else that of the
+    instruction calling the computation it lies in (a loop's body: the loop's)."""
+    named, called, enclosing, callers, inner, containers = {}, {}, {}, {}, {}, set()
+    computation = None
     for line in hlo_text.splitlines():
+        start = _COMPUTATION.match(line)
+        if start and " = " not in line:
+            computation = start.group(1)
+            continue
         match = _INSTRUCTION.match(line)
-        if match and not match.group(1).startswith(_CONTAINERS):
-            path = match.group(2).split("/")
-            phases[_key(match.group(1))] = next((p for p in PHASES if p in path), "other")
-    return phases
+        if not match or computation is None:
+            continue
+        name = match.group(1)
+        op_name = _OP_NAME.search(line)
+        named[name] = next((p for p, scope in _PHASE.items()
+                            if op_name and scope.search(op_name.group(1))), None)
+        enclosing[name] = computation
+        if _CONTAINER.search(line):
+            containers.add(name)
+        called[name] = [c.strip().lstrip("%") for group in _CALLED.findall(line)
+                        for c in group.split(",") if c.strip()]
+        for c in called[name]:
+            callers.setdefault(c, name)
+        if named[name]:
+            inner.setdefault(computation, collections.Counter())[named[name]] += 1
+
+    def phase(name: str, seen: frozenset = frozenset()) -> str:
+        if named[name]:
+            return named[name]
+        within = collections.Counter()
+        for c in called[name]:
+            within.update(inner.get(c, {}))
+        if within:
+            return within.most_common(1)[0][0]
+        caller = callers.get(enclosing[name])
+        if caller is None or caller in seen:
+            return "other"
+        return phase(caller, seen | {name})
+
+    return {_key(name): None if name in containers else phase(name) for name in named}
 
 
-def split(trace_file: str, phases: dict[str, str], generations: int) -> dict[str, float]:
-    """Device milliseconds per generation of each phase in a Perfetto JSON trace: the GPU's
-    kernels, or on a CPU the program's leaf operations."""
+def counted_events(trace_file: str, phases: dict[str, Optional[str]]
+                   ) -> list[tuple[dict, str, str]]:
+    """(event, instruction, phase) of every device operation in a Perfetto JSON trace: the
+    GPU's kernels, or on a CPU the program's operations other than its loops, conditionals
+    and calls. Copies and memsets are left out."""
     with gzip.open(trace_file) as f:
         events = json.load(f)["traceEvents"]
     names = {e["pid"]: e["args"]["name"] for e in events
              if e.get("ph") == "M" and e.get("name") == "process_name"}
     gpu = {pid for pid, name in names.items() if "GPU" in name or "gpu" in name}
-    totals = collections.Counter()
+    found = []
     for e in events:
         args = e.get("args", {})
-        if e.get("ph") != "X" or not ("hlo_op" in args or e.get("pid") in gpu):
+        if e.get("ph") != "X" or (e.get("pid") not in gpu if gpu else "hlo_op" not in args):
             continue
-        name = _key(args.get("hlo_op") or e["name"])
-        if name in phases:
-            totals[phases[name]] += e["dur"]
-        elif e.get("pid") in gpu and not name.lower().startswith(("memcpy", "memset")):
-            totals["other"] += e["dur"]
-    return {p: totals[p] / 1e3 / generations for p in (*PHASES, "other")}
+        # a kernel run inside a CUDA graph carries the graph's hlo_op: its own name is the
+        # fusion's
+        name = next((n for n in (_key(args.get("hlo_op", "")), _key(e["name"])) if n in phases),
+                    _key(e["name"]))
+        if name.lower().startswith(("memcpy", "memset")) or (name in phases
+                                                            and phases[name] is None):
+            continue
+        found.append((e, name, phases.get(name, "other")))
+    return found
+
+
+def split(trace_file: str, phases: dict[str, Optional[str]], generations: int
+          ) -> tuple[dict[str, float], dict[str, float]]:
+    """Device milliseconds per generation of each phase (`counted_events`), and of the
+    operations counted as `other`, the longest first."""
+    totals, unattributed = collections.Counter(), collections.Counter()
+    for event, name, phase in counted_events(trace_file, phases):
+        totals[phase] += event["dur"]
+        if phase == "other":
+            unattributed[name] += event["dur"]
+    per_generation = 1e3 * generations
+    return ({p: totals[p] / per_generation for p in (*PHASES, "other")},
+            {n: t / per_generation for n, t in unattributed.most_common(10)})
 
 
 def model_split(task: str, cell, generations: int, smoke: bool) -> dict:
@@ -90,15 +158,19 @@ def model_split(task: str, cell, generations: int, smoke: bool) -> dict:
     step = jax.jit(agent.generation_step)
     compiled = step.lower(state).compile()
     jax.block_until_ready(compiled(state))
+    options = jax.profiler.ProfileOptions()
+    options.advanced_configuration = {"gpu_max_activity_api_events": _EVENTS,
+                                      "gpu_max_callback_api_events": _EVENTS}
     with tempfile.TemporaryDirectory() as log_dir:
-        with jax.profiler.trace(log_dir, create_perfetto_trace=True):
+        with jax.profiler.trace(log_dir, create_perfetto_trace=True, profiler_options=options):
             for _ in range(generations):
                 out = compiled(state)
             jax.block_until_ready(out)
         trace = glob.glob(os.path.join(log_dir, "**", "perfetto_trace.json.gz"),
                           recursive=True)
-        ms = split(trace[0], phases_of(compiled.as_text()), generations)
-    return {"model": cell.config, "ms_per_generation": ms, "total_ms": sum(ms.values())}
+        ms, unattributed = split(trace[0], phases_of(compiled.as_text()), generations)
+    return {"model": cell.config, "ms_per_generation": ms, "total_ms": sum(ms.values()),
+            "unattributed_ms": unattributed}
 
 
 def main():

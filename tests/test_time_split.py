@@ -8,7 +8,7 @@ import os
 import jax
 import jax.numpy as jnp
 
-from benchmarks.time_split import phases_of, split
+from benchmarks.time_split import counted_events, phases_of, split
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
 from pgps_jax.agent.pgps import PGPS, PHASES
 from pgps_jax.envs import make_env
@@ -24,20 +24,27 @@ def test_the_generation_program_carries_every_phase_of_table1():
     assert set(PHASES) <= set(phases_of(text).values())
 
 
-def test_a_profile_s_time_goes_to_the_scopes_of_its_operations(tmp_path):
+def test_a_profile_s_time_goes_to_the_scopes_of_its_operations_once(tmp_path):
     def work(x):
         with jax.named_scope("td3_update"):
-            y = jnp.tanh(x @ x)
+            y = jax.lax.fori_loop(0, 3, lambda i, y: jnp.tanh(y @ x), x)
         with jax.named_scope("cem_update"):
-            return y, jnp.sin(y).sum(0)
+            z = jax.lax.cond(y[0, 0] > 0, lambda y: jnp.sin(y @ y), jnp.cos, y)
+            return z.sum(0)
 
-    x = jax.device_put(jnp.ones((256, 256)), jax.devices("cpu")[0])  # the CPU's trace
+    x = jax.device_put(jnp.ones((128, 128)) / 128, jax.devices("cpu")[0])  # the CPU's trace
     compiled = jax.jit(work).lower(x).compile()
     jax.block_until_ready(compiled(x))
     with jax.profiler.trace(str(tmp_path), create_perfetto_trace=True):
         for _ in range(3):
             jax.block_until_ready(compiled(x))
     trace, = glob.glob(os.path.join(tmp_path, "**", "perfetto_trace.json.gz"), recursive=True)
-    ms = split(trace, phases_of(compiled.as_text()), 3)
+    phases = phases_of(compiled.as_text())
+    assert None in phases.values()  # the loop and the conditional: their operations count
+    ms, _ = split(trace, phases, 3)
     assert ms["td3_update"] > 0 and ms["cem_update"] > 0
     assert ms["population_generation"] == ms["actors_evaluation"] == 0
+    spans = sorted((e["tid"], e["ts"], e["ts"] + e["dur"])
+                   for e, _, _ in counted_events(trace, phases))
+    for (tid, _, end), (next_tid, start, _) in zip(spans, spans[1:]):
+        assert tid != next_tid or start >= end  # none counted inside another
