@@ -29,7 +29,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from benchmarks.timing import timed
+from benchmarks.timing import provenance, timed
 from pgps_jax.agent.config import EvaluationConfig, for_task
 from pgps_jax.agent.pgps import PGPS
 from pgps_jax.envs import TASKS, make_env
@@ -125,9 +125,7 @@ def main() -> None:
     environ = dict(os.environ)
     if args.measure == "grid":  # this process only times: the GPUs' memory is the cells'
         os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True).stdout.strip()
-    header = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit}
+    header = provenance()
     saved = json.loads(args.results.read_text()) if args.results.exists() else []
 
     def record(entry: dict) -> None:

@@ -17,13 +17,13 @@ import argparse
 import ast
 import json
 import os
-import subprocess
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from benchmarks.timing import provenance
 from pgps_jax.agent.config import EvaluationConfig, for_task
 from pgps_jax.agent.pgps import PGPS
 from pgps_jax.cli import loop
@@ -94,9 +94,7 @@ def main():
     args = parser.parse_args()
     result = train(args.task, args.steps, args.seeds, _assignments(args.set),
                    _assignments(args.env))
-    result.update(device=jax.devices()[0].device_kind,
-                  commit=subprocess.run(["git", "rev-parse", "--short", "HEAD"],
-                                        capture_output=True, text=True).stdout.strip())
+    result.update(provenance())
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(result, f)

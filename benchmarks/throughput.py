@@ -20,7 +20,6 @@ import argparse
 import functools
 import json
 import os
-import subprocess
 import sys
 import time
 
@@ -30,7 +29,7 @@ import numpy as np
 import optax
 
 from benchmarks.env_latency import bare_rollout
-from benchmarks.timing import timed
+from benchmarks.timing import provenance, timed
 from pgps_jax.agent import buffer as replay
 from pgps_jax.agent import cem
 from pgps_jax.agent.config import EvaluationConfig, for_task
@@ -272,9 +271,7 @@ def main():
     parser.add_argument("--out", default="benchmarks/results/throughput.json")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True).stdout.strip()
-    result = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit,
+    result = {**provenance(),
               "xla_flags": os.environ.get("XLA_FLAGS", ""),
               "components": [], "full_runs": []}
     os.makedirs(os.path.dirname(args.out), exist_ok=True)

@@ -26,7 +26,6 @@ import gzip
 import json
 import os
 import re
-import subprocess
 import tempfile
 from typing import Optional
 
@@ -34,6 +33,7 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks.profile_generation import late_state
+from benchmarks.timing import provenance
 from pgps_jax.agent.config import EvaluationConfig, for_task
 from pgps_jax.agent.pgps import PGPS, PHASES
 from pgps_jax.envs import make_env
@@ -180,10 +180,7 @@ def main():
     parser.add_argument("--out", default="benchmarks/results/time_split.json")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True).stdout.strip()
-    result = {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit,
-              "tasks": []}
+    result = {**provenance(), "tasks": []}
     for task in args.tasks:
         models = [model_split(task, cell, args.generations, args.smoke)
                   for cell in cells("table1", (task,))]

@@ -1,5 +1,6 @@
-"""Timing of jitted functions, shared by the benchmarks."""
+"""Timing of jitted functions and the provenance of a measurement, shared by the benchmarks."""
 
+import subprocess
 import time
 
 import jax
@@ -17,3 +18,10 @@ def timed(fn, *args, repeats=5):
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - start)
     return first, float(np.median(times))
+
+
+def provenance() -> dict:
+    """The device kind, JAX version and commit a measurement is taken with."""
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
+    return {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit}
