@@ -271,10 +271,15 @@ def save_actors(path: pathlib.Path, generation: int, env_steps: int,
 
     Turn a vector into the flax parameter tree with `networks.actor_flattener`.
     """
+    write_npz(path, generation=np.int64(generation), env_steps=np.int64(env_steps),
+              **{k: np.asarray(v, np.float32) for k, v in flat_actors.items()})
+
+
+def write_npz(path: pathlib.Path, **arrays: np.ndarray) -> None:
+    """`arrays` in an .npz at `path`, written atomically (`write_atomic`)."""
     import io
     buffer = io.BytesIO()
-    np.savez(buffer, generation=np.int64(generation), env_steps=np.int64(env_steps),
-             **{k: np.asarray(v, np.float32) for k, v in flat_actors.items()})
+    np.savez(buffer, **arrays)
     write_atomic(path, buffer.getvalue())
 
 

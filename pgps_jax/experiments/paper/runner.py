@@ -24,7 +24,6 @@ it runs. A cell is continued or counted as done only under the settings it was s
 """
 
 import dataclasses
-import io
 import json
 import math
 import pathlib
@@ -222,8 +221,8 @@ class AtBudget:
         for i in reached:
             self.actors[i], self.steps[i], self.generations[i] = actors[i], steps[i], generation
         arrays = {f"seed{i + 1}": a for i, a in enumerate(self.actors) if a is not None}
-        rundir.write_atomic(directory / AT_BUDGET, _npz_bytes(
-            steps=self.steps, generations=self.generations, **arrays))
+        rundir.write_npz(directory / AT_BUDGET, steps=self.steps,
+                         generations=self.generations, **arrays)
 
     def actors_of(self, state, agent, sharding) -> jax.Array:
         """[batch, A, P]: the recorded actors; the padding seeds' current ones."""
@@ -231,12 +230,6 @@ class AtBudget:
         for i, actors in enumerate(self.actors):
             current[i] = actors
         return jax.device_put(current, sharding)
-
-
-def _npz_bytes(**arrays) -> bytes:
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    return buffer.getvalue()
 
 
 def _settings(algo: str, config, budget: Budget, devices: int) -> dict:
