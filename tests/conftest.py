@@ -7,10 +7,10 @@ import pathlib
 
 from train_cli import with_fast_compile_flags, run_here
 
-# The tests' programs, theirs and their CLI subprocesses', compile once and run briefly: XLA
-# spends less time optimising them (where this JAX's XLA knows the flags).
 # On a GPU, the workers, their CLI subprocesses and the experiment runner's cells share it.
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+# The tests' programs, theirs and their CLI subprocesses', compile once and run briefly: XLA
+# spends less time optimising them (where this JAX's XLA knows the flags).
 os.environ["XLA_FLAGS"] = with_fast_compile_flags(os.environ.get("XLA_FLAGS", ""))
 
 import jax  # noqa: E402  (after XLA_FLAGS)
