@@ -109,7 +109,7 @@ def main(argv=None):
     parser.add_argument("--no-normalize", action="store_true",
                         help="feed raw observations (PGPS and TD3 do not normalise)")
     parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
-                        help="keyword arguments of make_env (e.g. floor_contacts=every_geom)")
+                        help="keyword arguments of make_env (e.g. floor_contacts=gym)")
     args = parser.parse_args(argv)
     env_kwargs = dict(item.split("=", 1) for item in args.env)
     name = f"brax_{args.algo}"

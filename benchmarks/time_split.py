@@ -107,20 +107,21 @@ def phases_of(hlo_text: str) -> dict[str, Optional[str]]:
     return {_key(name): None if name in containers else phase(name) for name in named}
 
 
-def counted_events(trace_file: str, phases: dict[str, Optional[str]]
+def counted_events(trace_file: str, phases: dict[str, Optional[str]], platform: str
                    ) -> list[tuple[dict, str, str]]:
-    """(event, instruction, phase) of every device operation in a Perfetto JSON trace: the
-    GPU's kernels, or on a CPU the program's operations other than its loops, conditionals
-    and calls. Copies and memsets are left out."""
+    """(event, instruction, phase) of every device operation in a Perfetto JSON trace of a
+    program run on `platform` ("gpu" or "cpu"): the GPU's kernels, or the CPU's operations
+    other than its loops, conditionals and calls. Copies and memsets are left out."""
     with gzip.open(trace_file) as f:
         events = json.load(f)["traceEvents"]
     names = {e["pid"]: e["args"]["name"] for e in events
              if e.get("ph") == "M" and e.get("name") == "process_name"}
-    gpu = {pid for pid, name in names.items() if "GPU" in name or "gpu" in name}
+    gpu = {pid for pid, name in names.items() if "gpu" in name.lower()}
     found = []
     for e in events:
         args = e.get("args", {})
-        if e.get("ph") != "X" or (e.get("pid") not in gpu if gpu else "hlo_op" not in args):
+        if e.get("ph") != "X" or (e.get("pid") not in gpu if platform == "gpu"
+                                  else e.get("pid") in gpu or "hlo_op" not in args):
             continue
         # a kernel run inside a CUDA graph carries the graph's hlo_op: its own name is the
         # fusion's
@@ -133,12 +134,12 @@ def counted_events(trace_file: str, phases: dict[str, Optional[str]]
     return found
 
 
-def split(trace_file: str, phases: dict[str, Optional[str]], generations: int
-          ) -> tuple[dict[str, float], dict[str, float]]:
+def split(trace_file: str, phases: dict[str, Optional[str]], generations: int,
+          platform: str) -> tuple[dict[str, float], dict[str, float]]:
     """Device milliseconds per generation of each phase (`counted_events`), and of the
     operations counted as `other`, the longest first."""
     totals, unattributed = collections.Counter(), collections.Counter()
-    for event, name, phase in counted_events(trace_file, phases):
+    for event, name, phase in counted_events(trace_file, phases, platform):
         totals[phase] += event["dur"]
         if phase == "other":
             unattributed[name] += event["dur"]
@@ -168,7 +169,8 @@ def model_split(task: str, cell, generations: int, smoke: bool) -> dict:
             jax.block_until_ready(out)
         trace = glob.glob(os.path.join(log_dir, "**", "perfetto_trace.json.gz"),
                           recursive=True)
-        ms, unattributed = split(trace[0], phases_of(compiled.as_text()), generations)
+        ms, unattributed = split(trace[0], phases_of(compiled.as_text()), generations,
+                                 jax.default_backend())
     return {"model": cell.config, "ms_per_generation": ms, "total_ms": sum(ms.values()),
             "unattributed_ms": unattributed}
 

@@ -67,16 +67,17 @@ def test_unknown_task_lists_every_task():
         assert name in str(error.value)
 
 
-def test_start_pose_is_brax_keyframe_or_qpos0():
-    """ant's model has Brax's `init_qpos` keyframe (torso at 0.55 m, legs bent); Gym resets
-    around qpos0 (torso at 0.75 m, legs flat). Models without a keyframe start at qpos0."""
-    keyframe, gym = make_env("ant"), make_env("ant", start_pose="qpos0")
+def test_start_pose_is_qpos0_or_brax_keyframe():
+    """Gym resets around qpos0 (ant: torso at 0.75 m, legs flat); ant's model also has Brax's
+    `init_qpos` keyframe (torso at 0.55 m, legs bent). Models without a keyframe start at
+    qpos0 either way."""
+    keyframe, gym = make_env("ant", start_pose="init_qpos"), make_env("ant")
     assert float(keyframe._init_qpos[2]) == pytest.approx(0.55)
     np.testing.assert_array_equal(gym._init_qpos, gym.mj_model.qpos0)
     assert float(gym._init_qpos[2]) == pytest.approx(0.75)
     np.testing.assert_array_equal(make_env("hopper")._init_qpos,
-                                  make_env("hopper", start_pose="qpos0")._init_qpos)
-    with pytest.raises(ValueError, match="start_pose 'bent'; valid: init_qpos, qpos0"):
+                                  make_env("hopper", start_pose="init_qpos")._init_qpos)
+    with pytest.raises(ValueError, match="start_pose 'bent'; valid: qpos0, init_qpos"):
         make_env("ant", start_pose="bent")
 
 
@@ -92,14 +93,19 @@ def test_brax_asset_warnings_are_dropped_and_others_shown(capfd):
 
 
 def test_physics_overrides_reach_the_model():
-    env = make_env("hopper", iterations=3, ls_iterations=7, euler_damping=True)
+    env = make_env("hopper", iterations=3, ls_iterations=7, euler_damping=True,
+                   integrator="rk4")
     assert (env.mj_model.opt.iterations, env.mj_model.opt.ls_iterations) == (3, 7)
+    assert env.mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+    assert make_env("hopper").mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER
     assert not env.mj_model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_EULERDAMP
     assert make_env("hopper").mj_model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_EULERDAMP
     with pytest.raises(TypeError):
         make_env("hopper", substeps=2)
     with pytest.raises(ValueError, match="solver"):
         make_env("hopper", solver="pgs")
+    with pytest.raises(ValueError, match="integrator must be one of .'euler', 'rk4'."):
+        make_env("hopper", integrator="implicit")
 
 
 def _floor_contacts(env, torso_z: float) -> set[str]:
@@ -117,17 +123,23 @@ def _floor_contacts(env, torso_z: float) -> set[str]:
     return names
 
 
-def test_floor_contacts_of_the_model_or_of_every_geom():
-    """Brax's ant lets only its feet touch the floor; with floor_contacts="every_geom" the
-    torso and legs do too (Gym's ant), with a margin of 0.01 m, and no geom touches another."""
-    assert _floor_contacts(make_env("ant"), 0.05) == {f"{side}_foot_geom" for side in
-                                                     ("left", "right", "third", "fourth")}
-    gym_like = make_env("ant", floor_contacts="every_geom")
-    touching = _floor_contacts(gym_like, 0.05)
+def test_floor_contacts_of_the_model_or_of_gym():
+    """Brax's ant lets only four added zero-mass foot spheres touch the floor; with
+    floor_contacts="gym" (the ant's default) the spheres are gone and the torso and legs touch
+    it, with a margin of 0.01 m, and no geom touches another: Gym's ant, the same geoms and
+    masses."""
+    feet = {f"{side}_foot_geom" for side in ("left", "right", "third", "fourth")}
+    brax = make_env("ant", floor_contacts="model")
+    assert _floor_contacts(brax, 0.05) == feet
+    gym = make_env("ant")
+    touching = _floor_contacts(gym, 0.05)
     assert {"torso_geom", "aux_1_geom", "left_ankle_geom"} <= touching
-    assert np.all(gym_like.mj_model.geom_margin == 0.01)
-    assert _floor_contacts(gym_like, 0.5) == set()  # 0.25 m above the floor: none
-    with pytest.raises(ValueError, match="every_geom"):
+    assert not touching & feet
+    assert gym.mj_model.ngeom == brax.mj_model.ngeom - 4
+    np.testing.assert_allclose(gym.mj_model.body_mass, brax.mj_model.body_mass)
+    assert np.all(gym.mj_model.geom_margin == 0.01)
+    assert _floor_contacts(gym, 0.5) == set()  # 0.25 m above the floor: none
+    with pytest.raises(ValueError, match="model, gym"):
         make_env("ant", floor_contacts="all")
 
 

@@ -154,9 +154,9 @@ def test_set_reads_values_as_the_training_command_line_does():
                                   command._hints(PGPSConfig))
     assert parsed == {"resample_before_q_filter": False, "actor_hidden": (16, 16),
                       "pop_size": 4, "sigma_init": 1e-3}
-    env = command._assignments(["floor_contacts=every_geom", "iterations=2",
+    env = command._assignments(["floor_contacts=gym", "iterations=2",
                                 "euler_damping=true"], "--env", command.ENV_FIELDS)
-    assert env == {"floor_contacts": "every_geom", "iterations": 2, "euler_damping": True}
+    assert env == {"floor_contacts": "gym", "iterations": 2, "euler_damping": True}
 
 
 def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninterrupted,
@@ -287,7 +287,7 @@ def test_the_grids_hold_the_paper_s_cells():
     (["figure4", "--concurrent", "0"], ["--concurrent must be a positive integer"]),
     (["figure4", "--env", "contacts=all"], ["--env 'contacts=all'", "floor_contacts"]),
     (["figure4", "--tasks", "ant", "--env", "floor_contacts=all"],
-     ["--env on ant", "floor_contacts must be one of model, every_geom"]),
+     ["--env on ant", "floor_contacts must be one of model, gym"]),
 ])
 def test_bad_input_is_one_message_and_status_2(tmp_path, args, words):
     result = run_here("experiments.paper.command", [*args, "--out", str(tmp_path)], tmp_path)

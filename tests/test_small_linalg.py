@@ -135,3 +135,5 @@ def test_the_default_writes_out_on_a_gpu_and_keeps_the_library_calls_on_a_cpu():
     step = functools.partial(physics.step_frames, env.mjx_model, n_frames=1)
     library_calls = "cholesky" in _primitives(jax.make_jaxpr(step)(data))
     assert library_calls == (jax.default_backend() != "gpu")
+    with jax.default_device(jax.devices("cpu")[0]):  # a GPU machine's CPU: the CPU's default
+        assert "cholesky" in _primitives(jax.make_jaxpr(step)(data))

@@ -41,10 +41,10 @@ def test_a_profile_s_time_goes_to_the_scopes_of_its_operations_once(tmp_path):
     trace, = glob.glob(os.path.join(tmp_path, "**", "perfetto_trace.json.gz"), recursive=True)
     phases = phases_of(compiled.as_text())
     assert None in phases.values()  # the loop and the conditional: their operations count
-    ms, _ = split(trace, phases, 3)
+    ms, _ = split(trace, phases, 3, "cpu")
     assert ms["td3_update"] > 0 and ms["cem_update"] > 0
     assert ms["population_generation"] == ms["actors_evaluation"] == 0
     spans = sorted((e["tid"], e["ts"], e["ts"] + e["dur"])
-                   for e, _, _ in counted_events(trace, phases))
+                   for e, _, _ in counted_events(trace, phases, "cpu"))
     for (tid, _, end), (next_tid, start, _) in zip(spans, spans[1:]):
         assert tid != next_tid or start >= end  # none counted inside another

@@ -16,9 +16,9 @@ from mujoco import mjx
 from pgps_jax.envs import nan_guard, physics
 from pgps_jax.envs.physics import Physics
 
-START_POSES = ("init_qpos", "qpos0")
-"""Reset poses: Brax's `init_qpos` keyframe where the model has one (ant), else qpos0; or the
-model's reference pose qpos0, as Gym's MuJoCo envs reset."""
+START_POSES = ("qpos0", "init_qpos")
+"""Reset poses: the model's reference pose qpos0, as Gym's MuJoCo envs reset; or Brax's
+`init_qpos` keyframe where the model has one (ant), else qpos0."""
 
 METRICS = ("x_position", "x_velocity", "reward_forward", "reward_ctrl", "reward_healthy",
            "unstable")
@@ -41,7 +41,7 @@ class MjxEnv(Env):
     qvel_noise_normal: bool = False
     """Reset velocity noise ~ scale·N(0, 1) (HalfCheetah, Ant) instead of U(±scale)."""
 
-    def __init__(self, start_pose: str = "init_qpos", **physics_overrides):
+    def __init__(self, start_pose: str = "qpos0", **physics_overrides):
         """`start_pose`: the pose that reset adds noise to, one of `START_POSES`;
         `physics_overrides`: fields of `Physics` replacing the task's defaults."""
         if start_pose not in START_POSES:

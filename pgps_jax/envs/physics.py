@@ -22,15 +22,19 @@ from pgps_jax.envs.mjx_rewrites import small_linalg
 
 _ASSETS = epath.resource_path(brax.__name__) / "envs/assets"
 _SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
-FLOOR_CONTACTS = ("model", "every_geom")
-"""Which geoms touch the floor: those the Brax asset lets (ant: its four feet), or every body
-geom with a 0.01 m contact margin, as in Gym's MuJoCo assets."""
+_INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4}
+FLOOR_CONTACTS = ("model", "gym")
+"""Which geoms touch the floor: those the Brax asset lets (ant: four zero-mass foot spheres
+that Brax added), or Gym's: every body geom with a 0.01 m contact margin, the added spheres
+removed."""
 
 
 @dataclasses.dataclass(frozen=True)
 class Physics:
     """Constraint-solver settings of one task (MuJoCo `mjOption` fields)."""
 
+    integrator: str = "euler"
+    """'euler' or 'rk4' (four forward passes per physics step)."""
     solver: str = "newton"
     """'newton' or 'cg' (MJX has no PGS)."""
     iterations: int = 1
@@ -49,6 +53,9 @@ class Physics:
     GPU."""
 
     def __post_init__(self):
+        if self.integrator not in _INTEGRATORS:
+            raise ValueError(f"integrator must be one of {sorted(_INTEGRATORS)}, "
+                             f"got {self.integrator!r}")
         if self.solver not in _SOLVERS:
             raise ValueError(f"solver must be one of {sorted(_SOLVERS)}, got {self.solver!r}")
         if self.floor_contacts not in FLOOR_CONTACTS:
@@ -64,7 +71,8 @@ def model_defaults(xml: str) -> Physics:
     """The settings written in a Brax asset (MuJoCo's defaults where it names none)."""
     opt = mujoco.MjModel.from_xml_path(str(_ASSETS / xml)).opt
     solver = {v: k for k, v in _SOLVERS.items()}[mujoco.mjtSolver(opt.solver)]
-    return Physics(solver=solver, iterations=int(opt.iterations),
+    integrator = {v: k for k, v in _INTEGRATORS.items()}[mujoco.mjtIntegrator(opt.integrator)]
+    return Physics(integrator=integrator, solver=solver, iterations=int(opt.iterations),
                    ls_iterations=int(opt.ls_iterations),
                    euler_damping=not opt.disableflags & mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
 
@@ -72,12 +80,13 @@ def model_defaults(xml: str) -> Physics:
 def load_model(xml: str, physics: Physics) -> tuple[mujoco.MjModel, mjx.Model]:
     """Loads `brax/envs/assets/<xml>` with `physics` applied; returns it and its MJX copy."""
     with _known_warnings_dropped():
-        if physics.floor_contacts == "every_geom":
+        if physics.floor_contacts == "gym":
             spec = mujoco.MjSpec.from_file(str(_ASSETS / xml))
-            _every_geom_touches_the_floor(spec)
+            _gym_floor_contacts(spec)
             model = spec.compile()
         else:
             model = mujoco.MjModel.from_xml_path(str(_ASSETS / xml))
+    model.opt.integrator = _INTEGRATORS[physics.integrator]
     model.opt.solver = _SOLVERS[physics.solver]
     model.opt.iterations = physics.iterations
     model.opt.ls_iterations = physics.ls_iterations
@@ -89,10 +98,13 @@ def load_model(xml: str, physics: Physics) -> tuple[mujoco.MjModel, mjx.Model]:
     return model, mjx.put_model(model)
 
 
-def _every_geom_touches_the_floor(spec: mujoco.MjSpec) -> None:
+def _gym_floor_contacts(spec: mujoco.MjSpec) -> None:
     """Gym's contacts: each geom of a body collides with the world's geoms (the floor), not
-    with the others, with a 0.01 m margin. Set before compiling: the compiled model's broad
-    and mid phase only see the geoms that collided then."""
+    with the others, with a 0.01 m margin; the zero-mass contact spheres that Brax added (the
+    ant's feet, which sit on its capsules' end caps) are removed. Set before compiling: the
+    compiled model's broad and mid phase only see the geoms that collided then."""
+    for geom in [g for g in spec.geoms if g.mass == 0]:
+        spec.delete(geom)
     for geom in spec.geoms:
         on_body = geom.parent.name != spec.worldbody.name
         geom.contype, geom.conaffinity = (1, 0) if on_body else (geom.contype, 1)
@@ -132,13 +144,22 @@ def init_qpos(model: mujoco.MjModel) -> np.ndarray:
     return np.array(model.qpos0)
 
 
+def _default_platform() -> str:
+    """The platform that programs run on: that of `jax.default_device` where one is set (the
+    CPU of a GPU machine, say), else JAX's default backend."""
+    device = jax.config.jax_default_device
+    if device is None:
+        return jax.default_backend()
+    return device if isinstance(device, str) else device.platform
+
+
 def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
                 write_out_linalg: Optional[bool] = None,
                 unroll_line_search: Optional[bool] = None) -> mjx.Data:
     """Advances `data` by `n_frames` physics steps with its control held fixed.
 
     `write_out_linalg` and `unroll_line_search` switch the rewrites of `mjx_rewrites` on or
-    off; None gives `Physics`'s defaults (on a GPU: halfcheetah's physics per env step at
+    off; None gives `Physics`'s defaults for the default device's platform (on a GPU: halfcheetah's physics per env step at
     batch 40 on an H200 takes 1.05 ms with both instead of 1.33).
 
     The frames are unrolled: on the GPU every trip of a device loop pauses while the host reads
@@ -147,7 +168,7 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
     1.50 ms unrolled).
     The price is compiling `n_frames` copies of `mjx.step`.
     """
-    on_gpu = jax.default_backend() == "gpu"
+    on_gpu = _default_platform() == "gpu"
     if write_out_linalg is None:
         write_out_linalg = on_gpu and model.nv <= small_linalg.MAX_SIZE
     if unroll_line_search is None:

@@ -3,8 +3,8 @@
     python -m pgps_jax.experiments.paper figure4                      # 5 tasks × 5 seeds, 1M steps
     python -m pgps_jax.experiments.paper table1 --tasks ant --seeds 10
     python -m pgps_jax.experiments.paper figure4 --steps 20000 --set pop_size=4 --out runs/paper
-    python -m pgps_jax.experiments.paper figure4 --tasks ant --env floor_contacts=every_geom \
-        --out runs/ant_contacts
+    python -m pgps_jax.experiments.paper figure4 --tasks ant --env floor_contacts=model \
+        integrator=euler iterations=1 --out runs/ant_brax_physics
     python -m pgps_jax.experiments.paper figure4 --concurrent 5   # 5 cells at once, own processes
     python -m pgps_jax.experiments.paper figure4 --report         # figures and tables only
 
