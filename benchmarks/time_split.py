@@ -37,6 +37,7 @@ from benchmarks.timing import provenance
 from pgps_jax.agent.config import EvaluationConfig, for_task
 from pgps_jax.agent.pgps import PGPS, PHASES
 from pgps_jax.envs import make_env
+from pgps_jax.envs.physics import default_platform
 from pgps_jax.experiments.paper.grid import cells
 
 SMOKE = dict(t_init=10, t_max=20, t_interval=1000, buffer_size=5000, warmup_steps=200,
@@ -170,7 +171,7 @@ def model_split(task: str, cell, generations: int, smoke: bool) -> dict:
         trace = glob.glob(os.path.join(log_dir, "**", "perfetto_trace.json.gz"),
                           recursive=True)
         ms, unattributed = split(trace[0], phases_of(compiled.as_text()), generations,
-                                 jax.default_backend())
+                                 default_platform())
     return {"model": cell.config, "ms_per_generation": ms, "total_ms": sum(ms.values()),
             "unattributed_ms": unattributed}
 

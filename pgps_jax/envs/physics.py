@@ -144,7 +144,7 @@ def init_qpos(model: mujoco.MjModel) -> np.ndarray:
     return np.array(model.qpos0)
 
 
-def _default_platform() -> str:
+def default_platform() -> str:
     """The platform that programs run on: that of `jax.default_device` where one is set (the
     CPU of a GPU machine, say), else JAX's default backend."""
     device = jax.config.jax_default_device
@@ -159,8 +159,8 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
     """Advances `data` by `n_frames` physics steps with its control held fixed.
 
     `write_out_linalg` and `unroll_line_search` switch the rewrites of `mjx_rewrites` on or
-    off; None gives `Physics`'s defaults for the default device's platform (on a GPU: halfcheetah's physics per env step at
-    batch 40 on an H200 takes 1.05 ms with both instead of 1.33).
+    off; None gives `Physics`'s defaults for `default_platform()` (on a GPU: halfcheetah's
+    physics per env step at batch 40 on an H200 takes 1.05 ms with both instead of 1.33).
 
     The frames are unrolled: on the GPU every trip of a device loop pauses while the host reads
     its condition, which at these batch sizes costs more than the physics between the pauses
@@ -168,7 +168,7 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
     1.50 ms unrolled).
     The price is compiling `n_frames` copies of `mjx.step`.
     """
-    on_gpu = _default_platform() == "gpu"
+    on_gpu = default_platform() == "gpu"
     if write_out_linalg is None:
         write_out_linalg = on_gpu and model.nv <= small_linalg.MAX_SIZE
     if unroll_line_search is None:
