@@ -27,9 +27,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.learning import _assignments
 from benchmarks.timing import provenance
 from pgps_jax.agent.rollout import run_episodes
+from pgps_jax.cli.assignments import ENV_FIELDS, assignments
+from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import TASKS, make_env
 
 GYM_NAMES = {"halfcheetah": "HalfCheetah-v2", "hopper": "Hopper-v2",
@@ -90,7 +91,10 @@ def main():
                         help="make_env keyword arguments for every task")
     parser.add_argument("--out", default="benchmarks/results/authors_actors.json")
     args = parser.parse_args()
-    env_kwargs = _assignments(args.env)
+    try:
+        env_kwargs = assignments(args.env, "--env", ENV_FIELDS)
+    except UsageError as e:
+        parser.error(str(e))
     record = {**provenance(), "env": env_kwargs, "episodes": args.episodes, "tasks": {}}
     for task in args.tasks:
         record["tasks"][task] = play(task, args.models, args.episodes, env_kwargs)

@@ -14,7 +14,6 @@ the CLI's loop (`pgps_jax.cli.loop`, the seeds vmapped), and writes a JSON with
 """
 
 import argparse
-import ast
 import json
 import os
 import time
@@ -24,9 +23,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.timing import provenance
-from pgps_jax.agent.config import EvaluationConfig, for_task
+from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, for_task
 from pgps_jax.agent.pgps import PGPS
 from pgps_jax.cli import loop
+from pgps_jax.cli.assignments import ENV_FIELDS, assignments, field_types
+from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import make_env
 
 PER_GENERATION = {"limit": "gen/episode_limit", "interaction_steps": "gen/interaction_steps",
@@ -34,18 +35,6 @@ PER_GENERATION = {"limit": "gen/episode_limit", "interaction_steps": "gen/intera
                   "td3_return": "td3/return", "guided": "td3/guided_loss", "beta": "td3/beta",
                   "cem_var": "cem/var_mean"}
 FINAL_KEY_OFFSET = 10_000
-
-
-def _assignments(pairs: list[str]) -> dict:
-    """`name=value` pairs, values as Python literals where they parse, else strings."""
-    values = {}
-    for pair in pairs:
-        name, _, text = pair.partition("=")
-        try:
-            values[name] = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            values[name] = text
-    return values
 
 
 def train(task: str, steps: int, seeds: int, overrides: dict, env_kwargs: dict) -> dict:
@@ -92,8 +81,12 @@ def main():
                         help="keyword arguments of make_env")
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
-    result = train(args.task, args.steps, args.seeds, _assignments(args.set),
-                   _assignments(args.env))
+    try:
+        overrides = assignments(args.set, "--set", field_types(PGPSConfig))
+        env_kwargs = assignments(args.env, "--env", ENV_FIELDS)
+    except UsageError as e:
+        parser.error(str(e))
+    result = train(args.task, args.steps, args.seeds, overrides, env_kwargs)
     result.update(provenance())
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
     with open(args.out, "w") as f:

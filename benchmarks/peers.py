@@ -27,6 +27,8 @@ import jax
 import jax.numpy as jnp
 
 from pgps_jax.cli import run_dir as rundir
+from pgps_jax.cli.assignments import ENV_FIELDS, assignments
+from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import make_env
 
 SETTINGS = {
@@ -111,7 +113,10 @@ def main(argv=None):
     parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
                         help="keyword arguments of make_env (e.g. floor_contacts=gym)")
     args = parser.parse_args(argv)
-    env_kwargs = dict(item.split("=", 1) for item in args.env)
+    try:
+        env_kwargs = assignments(args.env, "--env", ENV_FIELDS)
+    except UsageError as e:
+        parser.error(str(e))
     name = f"brax_{args.algo}"
     directory = args.out / "figure4" / args.task / name
     directory.mkdir(parents=True, exist_ok=True)

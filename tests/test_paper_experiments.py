@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
+from pgps_jax.cli.assignments import ENV_FIELDS, assignments, field_types
 from pgps_jax.cli.errors import RunFailed, UsageError
 from pgps_jax.experiments.paper import command, grid, runner, side_by_side
 
@@ -149,14 +150,22 @@ def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
 
 
 def test_set_reads_values_as_the_training_command_line_does():
-    parsed = command._assignments(["resample_before_q_filter=false", "actor_hidden=[16,16]",
-                                   "pop_size=4", "sigma_init=1e-3"], "--set",
-                                  command._hints(PGPSConfig))
+    parsed = assignments(["resample_before_q_filter=false", "actor_hidden=[16,16]",
+                          "pop_size=4", "sigma_init=1e-3"], "--set", field_types(PGPSConfig))
     assert parsed == {"resample_before_q_filter": False, "actor_hidden": (16, 16),
                       "pop_size": 4, "sigma_init": 1e-3}
-    env = command._assignments(["floor_contacts=gym", "iterations=2",
-                                "euler_damping=true"], "--env", command.ENV_FIELDS)
+    env = assignments(["floor_contacts=gym", "iterations=2", "euler_damping=true"], "--env",
+                      ENV_FIELDS)
     assert env == {"floor_contacts": "gym", "iterations": 2, "euler_damping": True}
+
+
+def test_an_unknown_name_or_a_bad_value_is_refused_with_the_choices():
+    with pytest.raises(UsageError, match="'iteration=2'.*NAME one of start_pose, integrator"):
+        assignments(["iteration=2"], "--env", ENV_FIELDS)
+    with pytest.raises(UsageError, match="'pop_size'.*NAME one of pop_size, top_k"):
+        assignments(["pop_size"], "--set", field_types(PGPSConfig))
+    with pytest.raises(UsageError, match="--set pop_size"):
+        assignments(["pop_size=many"], "--set", field_types(PGPSConfig))
 
 
 def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninterrupted,

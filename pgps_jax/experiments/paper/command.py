@@ -15,24 +15,20 @@ done cells are skipped and a cut-off cell continues from its last checkpoint.
 """
 
 import argparse
-import dataclasses
 import json
 import os
 import pathlib
 import sys
-import typing
 from typing import Optional
 
 import numpy as np
-import yaml
 from tqdm import tqdm
 
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, check_for_algorithm, for_task
 from pgps_jax.cli import run_dir as rundir
+from pgps_jax.cli.assignments import ENV_FIELDS, assignments, field_types
 from pgps_jax.cli.errors import EXIT_INTERRUPTED, UsageError, print_error, report
-from pgps_jax.cli.run_config import coerce
 from pgps_jax.envs import make_env
-from pgps_jax.envs.physics import Physics
 from pgps_jax.experiments.paper import side_by_side
 from pgps_jax.experiments.paper.grid import EXPERIMENTS, Cell, cells
 from pgps_jax.experiments.paper.report import REFERENCE, write_report
@@ -145,39 +141,6 @@ def write_final_returns(path: pathlib.Path, results: list[dict]) -> None:
     rundir.write_csv(path, header, rows)
 
 
-ENV_FIELDS = {"start_pose": str, **typing.get_type_hints(Physics)}
-"""The keyword arguments of `make_env` for a MuJoCo task and their types: the pose reset
-starts from and the `Physics` fields."""
-
-
-def _assignments(pairs: list[str], what: str, hints: dict) -> dict:
-    """`name=value` pairs as the types of `hints` (values read as YAML, as on the training
-    command line: true, 400, [64,64])."""
-    values = {}
-    for pair in pairs:
-        name, sep, text = pair.partition("=")
-        if not sep or name not in hints:
-            raise UsageError(f"{what} {pair!r}: expected NAME=VALUE with NAME one of "
-                             f"{', '.join(hints)}")
-        try:
-            value = yaml.safe_load(text)
-        except yaml.YAMLError:
-            value = text
-        if isinstance(value, str):  # YAML reads 1e-3 as text
-            try:
-                value = float(value)
-            except ValueError:
-                pass
-        values[name] = coerce(f"{what} {name}", value, hints[name])
-    return values
-
-
-def _hints(fields: type) -> dict:
-    """A dataclass's fields and their types, in their order."""
-    types = typing.get_type_hints(fields)
-    return {f.name: types[f.name] for f in dataclasses.fields(fields)}
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pgps_jax.experiments.paper",
                                      description=__doc__.split("\n")[0])
@@ -221,15 +184,15 @@ def main(argv=None) -> int:
             if getattr(args, name) <= 0:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer")
         try:
-            evaluation = EvaluationConfig(**_assignments(args.eval, "--eval",
-                                                         _hints(EvaluationConfig)))
+            evaluation = EvaluationConfig(**assignments(args.eval, "--eval",
+                                                         field_types(EvaluationConfig)))
         except ValueError as e:
             raise UsageError(str(e)) from None
         budget = Budget(steps=args.steps, seeds=args.seeds, evaluation=evaluation,
                         checkpoint_every=args.checkpoint_every,
-                        overrides=tuple(_assignments(args.set, "--set",
-                                                     _hints(PGPSConfig)).items()),
-                        env=tuple(_assignments(args.env, "--env", ENV_FIELDS).items()))
+                        overrides=tuple(assignments(args.set, "--set",
+                                                     field_types(PGPSConfig)).items()),
+                        env=tuple(assignments(args.env, "--env", ENV_FIELDS).items()))
         environ = dict(os.environ)
         if args.concurrent > 1:  # this process only schedules: the GPUs' memory is the cells'
             os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
