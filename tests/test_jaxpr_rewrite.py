@@ -1,5 +1,5 @@
 """Tests for pgps_jax.envs.mjx_rewrites: the re-tracing pass, its fallback when a rule no longer
-fits, and the physics step's unrolled line search."""
+fits, and the physics step's unrolled line search and solver iterations."""
 
 import functools
 import re
@@ -13,6 +13,7 @@ import pytest
 
 from pgps_jax.envs import make_env, physics
 from pgps_jax.envs.mjx_rewrites.line_search import unrolled_line_search
+from pgps_jax.envs.mjx_rewrites.solver_loop import unrolled_solver
 from pgps_jax.envs.mjx_rewrites.rewrite import Rule, rewrite
 
 SIN_TO_COS = Rule(name="sin_to_cos", applies=lambda eqn: eqn.primitive is primitives.sin_p,
@@ -125,3 +126,64 @@ def test_the_switches_on_physics_reach_the_env_step():
     unrolled = scan_unrolls(make_env("hopper", unroll_line_search=True))
     kept = scan_unrolls(make_env("hopper", unroll_line_search=False))
     assert len(unrolled) == len(kept) and sum(unrolled) > sum(kept)
+
+
+def _solver_like(x):
+    """A while loop shaped like MJX's solver: at most 3 trips, each with a 4-step scan (its
+    "line search"), ending early per row once x is small; and a loop without a scan."""
+    def body(carry):
+        i, x = carry
+        x = jax.lax.scan(lambda c, _: (c * 0.9 - 0.01, None), x, None, length=4)[0]
+        return i + 1, x
+    _, x = jax.lax.while_loop(lambda c: (c[0] < 3) & (c[1] > 0.5), body, (0, x))
+    return jax.lax.while_loop(lambda y: y < 10.0, lambda y: y + 4.0, x)
+
+
+def test_unrolled_solver_keeps_each_row_on_its_own_trips():
+    """Rows that stop after 0, 1, 2 or 3 trips get the loop's result, and only the loop
+    holding the line-search scan is written out."""
+    x = jnp.array([0.2, 0.6, 0.8, 5.0])
+    rewritten = rewrite(_solver_like, [unrolled_solver(3, 4)])
+    np.testing.assert_allclose(jax.vmap(rewritten)(x), jax.vmap(_solver_like)(x), rtol=1e-6)
+    expected = []
+    for row in np.asarray(x, np.float64):
+        for _ in range(3):
+            if row <= 0.5:
+                break
+            for _ in range(4):
+                row = row * 0.9 - 0.01
+        while row < 10.0:
+            row += 4.0
+        expected.append(row)
+    np.testing.assert_allclose(jax.vmap(rewritten)(x), expected, rtol=1e-5)
+    whiles = [e for e in jax.make_jaxpr(rewritten)(1.0).jaxpr.eqns
+              if e.primitive is primitives.while_p]
+    assert len(whiles) == 1   # the loop without a scan is left as it is
+    assert not any(e.primitive is primitives.scan_p
+                   for e in whiles[0].params["body_jaxpr"].jaxpr.eqns)
+
+
+def test_unrolled_solver_is_the_same_ant_physics_without_its_loop():
+    """ant (Newton, 2 iterations, RK4): the step with the solver's iterations written out
+    lowers with no while loop left but the frames' and gives the same states."""
+    env = make_env("ant")
+    state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 3))
+    controls = jax.random.uniform(jax.random.PRNGKey(1), (3, env.action_size), minval=-1,
+                                  maxval=1)
+    data = state.pipeline_state.replace(ctrl=controls)
+
+    def step(unroll_solver):
+        return jax.jit(jax.vmap(functools.partial(
+            physics.step_frames, env.mjx_model, n_frames=2, unroll_line_search=True,
+            unroll_solver=unroll_solver)))
+    looped, unrolled = step(False), step(True)
+
+    def loops(fn):
+        return len(re.findall(r"stablehlo\.while", fn.lower(data).as_text()))
+    frame_loops = 0 if jax.default_backend() == "gpu" else 1
+    assert loops(looped) > frame_loops and loops(unrolled) == frame_loops
+    a, b = data, data
+    for _ in range(3):
+        a, b = looped(a), unrolled(b)
+    for field in ("qpos", "qvel", "qacc_warmstart"):
+        np.testing.assert_allclose(getattr(b, field), getattr(a, field), rtol=1e-5, atol=1e-5)

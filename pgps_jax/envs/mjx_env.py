@@ -86,7 +86,8 @@ class MjxEnv(Env):
         data0 = state.pipeline_state
         data = physics.step_frames(self.mjx_model, data0.replace(ctrl=action), self.n_frames,
                                    self.physics.write_out_linalg,
-                                   self.physics.unroll_line_search)
+                                   self.physics.unroll_line_search,
+                                   self.physics.unroll_solver)
         x0, x1 = self._x_position(data0.qpos), self._x_position(data.qpos)
         x_velocity = (x1 - x0) / self.dt
         forward = self.forward_reward_weight * x_velocity

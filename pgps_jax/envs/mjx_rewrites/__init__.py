@@ -5,12 +5,13 @@
   cuSOLVER / cuBLAS calls (`Physics.write_out_linalg`).
 - `line_search`: the Newton solver's line search without a device loop
   (`Physics.unroll_line_search`).
+- `solver_loop`: the solver's iterations, when there are several, without a device loop
+  (`Physics.unroll_solver`).
 
-Both default to on for a GPU (the written-out linear algebra for models of up to
+All default to on for a GPU (the written-out linear algebra for models of up to
 `small_linalg.MAX_SIZE` degrees of freedom) and off for a CPU, where the library calls are
-faster; on an
-H200, halfcheetah's physics at batch 40 takes 1.05 ms per env step with both instead of 1.33
-(BENCHMARKS.md). They re-trace `mjx.step` (`rewrite`) and match its code by primitive, shape
+faster; on an H200, halfcheetah's physics at batch 40 takes 1.05 ms per env step with the
+first two instead of 1.33 (BENCHMARKS.md; the third is not yet timed). They re-trace `mjx.step` (`rewrite`) and match its code by primitive, shape
 and parameter names, as MJX and JAX were in `WRITTEN_FOR`; where a later version no longer
 fits a rule, MJX's own code runs and one warning says which rule.
 """
@@ -22,19 +23,22 @@ from mujoco import mjx
 from pgps_jax.envs.mjx_rewrites.line_search import unrolled_line_search
 from pgps_jax.envs.mjx_rewrites.rewrite import rewrite
 from pgps_jax.envs.mjx_rewrites.small_linalg import SMALL_LINALG
+from pgps_jax.envs.mjx_rewrites.solver_loop import unrolled_solver
 
 WRITTEN_FOR = {"mujoco-mjx": "3.17.0", "jax": "0.10.2"}
 """The versions whose traced `mjx.step` the rules were written against and tested on."""
 
 
-def physics_step(model: mjx.Model, write_out_linalg: bool,
-                 unroll_line_search: bool) -> Callable[[mjx.Data], mjx.Data]:
+def physics_step(model: mjx.Model, write_out_linalg: bool, unroll_line_search: bool,
+                 unroll_solver: bool) -> Callable[[mjx.Data], mjx.Data]:
     """`mjx.step` of `model`, with the rewrites that are switched on."""
     rules = []
     if write_out_linalg:
         rules.append(SMALL_LINALG)
     if unroll_line_search:
         rules.append(unrolled_line_search(int(model.opt.ls_iterations)))
+    if unroll_solver and model.opt.iterations > 1:
+        rules.append(unrolled_solver(int(model.opt.iterations), int(model.opt.ls_iterations)))
 
     def step(data: mjx.Data) -> mjx.Data:
         return mjx.step(model, data)
