@@ -29,7 +29,7 @@ import numpy as np
 
 from benchmarks.timing import provenance
 from pgps_jax.agent.rollout import run_episodes
-from pgps_jax.cli.assignments import ENV_FIELDS, assignments
+from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import TASKS, make_env
 
@@ -92,7 +92,7 @@ def main():
     parser.add_argument("--out", default="benchmarks/results/authors_actors.json")
     args = parser.parse_args()
     try:
-        env_kwargs = assignments(args.env, "--env", ENV_FIELDS)
+        env_kwargs = env_assignments(args.env)
     except UsageError as e:
         parser.error(str(e))
     record = {**provenance(), "env": env_kwargs, "episodes": args.episodes, "tasks": {}}

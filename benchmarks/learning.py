@@ -26,7 +26,7 @@ from benchmarks.timing import provenance
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, for_task
 from pgps_jax.agent.pgps import PGPS
 from pgps_jax.cli import loop
-from pgps_jax.cli.assignments import ENV_FIELDS, assignments, field_types
+from pgps_jax.cli.assignments import assignments, env_assignments, field_types
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import make_env
 
@@ -83,7 +83,7 @@ def main():
     args = parser.parse_args()
     try:
         overrides = assignments(args.set, "--set", field_types(PGPSConfig))
-        env_kwargs = assignments(args.env, "--env", ENV_FIELDS)
+        env_kwargs = env_assignments(args.env)
     except UsageError as e:
         parser.error(str(e))
     result = train(args.task, args.steps, args.seeds, overrides, env_kwargs)

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from pgps_jax.cli import run_dir as rundir
-from pgps_jax.cli.assignments import ENV_FIELDS, assignments
+from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import make_env
 
@@ -114,7 +114,7 @@ def main(argv=None):
                         help="keyword arguments of make_env (e.g. floor_contacts=gym)")
     args = parser.parse_args(argv)
     try:
-        env_kwargs = assignments(args.env, "--env", ENV_FIELDS)
+        env_kwargs = env_assignments(args.env)
     except UsageError as e:
         parser.error(str(e))
     name = f"brax_{args.algo}"

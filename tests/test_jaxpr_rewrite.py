@@ -128,39 +128,54 @@ def test_the_switches_on_physics_reach_the_env_step():
     assert len(unrolled) == len(kept) and sum(unrolled) > sum(kept)
 
 
+THRESHOLD, FACTOR = np.float32(0.5), np.float32(0.9)
+
+
 def _solver_like(x):
     """A while loop shaped like MJX's solver: at most 3 trips, each with a 4-step scan (its
-    "line search"), ending early per row once x is small; and a loop without a scan."""
+    "line search"), ending early per row once x is small, with arrays closed over in its
+    condition and body; then a loop without a scan."""
+    threshold, factor = jnp.asarray(THRESHOLD), jnp.asarray(FACTOR)
+
     def body(carry):
         i, x = carry
-        x = jax.lax.scan(lambda c, _: (c * 0.9 - 0.01, None), x, None, length=4)[0]
+        x = jax.lax.scan(lambda c, _: (c * factor - 0.01, None), x, None, length=4)[0]
         return i + 1, x
-    _, x = jax.lax.while_loop(lambda c: (c[0] < 3) & (c[1] > 0.5), body, (0, x))
+    _, x = jax.lax.while_loop(lambda c: (c[0] < 3) & (c[1] > threshold), body, (0, x))
     return jax.lax.while_loop(lambda y: y < 10.0, lambda y: y + 4.0, x)
 
 
 def test_unrolled_solver_keeps_each_row_on_its_own_trips():
     """Rows that stop after 0, 1, 2 or 3 trips get the loop's result, and only the loop
     holding the line-search scan is written out."""
-    x = jnp.array([0.2, 0.6, 0.8, 5.0])
+    x = jnp.array([0.2, 0.6, 1.0, 5.0])
     rewritten = rewrite(_solver_like, [unrolled_solver(3, 4)])
-    np.testing.assert_allclose(jax.vmap(rewritten)(x), jax.vmap(_solver_like)(x), rtol=1e-6)
-    expected = []
+    expected, trips = [], []
     for row in np.asarray(x, np.float64):
-        for _ in range(3):
-            if row <= 0.5:
-                break
+        trip = 0
+        while trip < 3 and row > THRESHOLD:
             for _ in range(4):
-                row = row * 0.9 - 0.01
+                row = row * FACTOR - 0.01
+            trip += 1
         while row < 10.0:
             row += 4.0
         expected.append(row)
+        trips.append(trip)
+    assert trips == [0, 1, 2, 3]
+    np.testing.assert_allclose(jax.vmap(rewritten)(x), jax.vmap(_solver_like)(x), rtol=1e-6)
     np.testing.assert_allclose(jax.vmap(rewritten)(x), expected, rtol=1e-5)
     whiles = [e for e in jax.make_jaxpr(rewritten)(1.0).jaxpr.eqns
               if e.primitive is primitives.while_p]
     assert len(whiles) == 1   # the loop without a scan is left as it is
     assert not any(e.primitive is primitives.scan_p
                    for e in whiles[0].params["body_jaxpr"].jaxpr.eqns)
+
+
+def test_unrolled_solver_leaves_a_loop_of_another_trip_limit():
+    """A loop whose condition does not bound it by `iterations` trips keeps its loop."""
+    with pytest.warns(RuntimeWarning, match="'unrolled_solver' found nothing to rewrite"):
+        traced = jax.make_jaxpr(rewrite(_solver_like, [unrolled_solver(2, 4)]))(1.0)
+    assert sum(e.primitive is primitives.while_p for e in traced.jaxpr.eqns) == 2
 
 
 def test_unrolled_solver_is_the_same_ant_physics_without_its_loop():

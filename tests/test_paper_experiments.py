@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
-from pgps_jax.cli.assignments import ENV_FIELDS, assignments, field_types
+from pgps_jax.cli.assignments import assignments, env_assignments, field_types
 from pgps_jax.cli.errors import RunFailed, UsageError
 from pgps_jax.experiments.paper import command, grid, runner, side_by_side
 
@@ -154,14 +154,21 @@ def test_set_reads_values_as_the_training_command_line_does():
                           "pop_size=4", "sigma_init=1e-3"], "--set", field_types(PGPSConfig))
     assert parsed == {"resample_before_q_filter": False, "actor_hidden": (16, 16),
                       "pop_size": 4, "sigma_init": 1e-3}
-    env = assignments(["floor_contacts=gym", "iterations=2", "euler_damping=true"], "--env",
-                      ENV_FIELDS)
-    assert env == {"floor_contacts": "gym", "iterations": 2, "euler_damping": True}
+    env = env_assignments(["floor_contacts=gym", "iterations=2", "euler_damping=true",
+                           "unroll_line_search=false", "write_out_linalg=null"])
+    assert env == {"floor_contacts": "gym", "iterations": 2, "euler_damping": True,
+                   "unroll_line_search": False, "write_out_linalg": None}
 
 
 def test_an_unknown_name_or_a_bad_value_is_refused_with_the_choices():
     with pytest.raises(UsageError, match="'iteration=2'.*NAME one of start_pose, integrator"):
-        assignments(["iteration=2"], "--env", ENV_FIELDS)
+        env_assignments(["iteration=2"])
+    with pytest.raises(UsageError, match=r"--env: integrator must be one of \['euler', 'rk4'\]"):
+        env_assignments(["integrator=rk5"])
+    with pytest.raises(UsageError, match="start_pose must be one of qpos0, init_qpos"):
+        env_assignments(["start_pose=standing"])
+    with pytest.raises(UsageError, match="unroll_line_search must be true or false"):
+        env_assignments(["unroll_line_search=maybe"])
     with pytest.raises(UsageError, match="'pop_size'.*NAME one of pop_size, top_k"):
         assignments(["pop_size"], "--set", field_types(PGPSConfig))
     with pytest.raises(UsageError, match="--set pop_size"):
@@ -296,7 +303,7 @@ def test_the_grids_hold_the_paper_s_cells():
     (["figure4", "--concurrent", "0"], ["--concurrent must be a positive integer"]),
     (["figure4", "--env", "contacts=all"], ["--env 'contacts=all'", "floor_contacts"]),
     (["figure4", "--tasks", "ant", "--env", "floor_contacts=all"],
-     ["--env on ant", "floor_contacts must be one of model, gym"]),
+     ["--env: floor_contacts must be one of model, gym, got 'all'"]),
 ])
 def test_bad_input_is_one_message_and_status_2(tmp_path, args, words):
     result = run_here("experiments.paper.command", [*args, "--out", str(tmp_path)], tmp_path)

@@ -8,6 +8,7 @@ import yaml
 
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.cli.run_config import coerce
+from pgps_jax.envs.mjx_env import START_POSES
 from pgps_jax.envs.physics import Physics
 
 ENV_FIELDS = {"start_pose": str, **typing.get_type_hints(Physics)}
@@ -40,4 +41,19 @@ def assignments(pairs: list[str], what: str, hints: dict) -> dict:
             except ValueError:
                 pass
         values[name] = coerce(f"{what} {name}", value, hints[name])
+    return values
+
+
+def env_assignments(pairs: list[str], what: str = "--env") -> dict:
+    """`make_env` keyword arguments from `name=value` pairs, their values checked as `make_env`
+    would check them (a UsageError instead of its ValueError)."""
+    values = assignments(pairs, what, ENV_FIELDS)
+    physics = {name: value for name, value in values.items() if name != "start_pose"}
+    try:
+        Physics(**physics)
+    except ValueError as e:
+        raise UsageError(f"{what}: {e}") from None
+    if values.get("start_pose", START_POSES[0]) not in START_POSES:
+        raise UsageError(f"{what} start_pose must be one of {', '.join(START_POSES)}, "
+                         f"got {values['start_pose']!r}")
     return values

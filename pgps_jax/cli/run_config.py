@@ -150,6 +150,9 @@ def check_overrides(args: Sequence[str]) -> None:
 
 def coerce(key: str, value: Any, kind: Any) -> Any:
     """`value` as the dataclass field type `kind`, or a UsageError naming `key`."""
+    optional = [k for k in typing.get_args(kind) if k is not type(None)]
+    if typing.get_origin(kind) is typing.Union and len(optional) == 1:  # Optional[X]
+        return None if value is None else coerce(key, value, optional[0])
     if kind is bool:
         if isinstance(value, bool):
             return value

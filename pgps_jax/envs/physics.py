@@ -51,9 +51,9 @@ class Physics:
     unroll_line_search: Optional[bool] = None
     """The Newton solver's line search without a device loop (`mjx_rewrites`); None: on a
     GPU."""
-    unroll_solver: Optional[bool] = None
+    unroll_solver: bool = False
     """The solver's iterations, when there are several, without a device loop
-    (`mjx_rewrites`); None: on a GPU."""
+    (`mjx_rewrites`); off until its speed is measured."""
 
     def __post_init__(self):
         if self.integrator not in _INTEGRATORS:
@@ -159,7 +159,7 @@ def default_platform() -> str:
 def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
                 write_out_linalg: Optional[bool] = None,
                 unroll_line_search: Optional[bool] = None,
-                unroll_solver: Optional[bool] = None) -> mjx.Data:
+                unroll_solver: bool = False) -> mjx.Data:
     """Advances `data` by `n_frames` physics steps with its control held fixed.
 
     `write_out_linalg`, `unroll_line_search` and `unroll_solver` switch the rewrites of
@@ -178,8 +178,6 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
         write_out_linalg = on_gpu and model.nv <= small_linalg.MAX_SIZE
     if unroll_line_search is None:
         unroll_line_search = on_gpu
-    if unroll_solver is None:
-        unroll_solver = on_gpu
     step = mjx_rewrites.physics_step(model, write_out_linalg, unroll_line_search,
                                      unroll_solver)
     return jax.lax.fori_loop(0, n_frames, lambda _, d: step(d), data, unroll=on_gpu)

@@ -6,7 +6,9 @@ batch and keeps the converged rows as they were; on a GPU every trip also pauses
 host reads the loop's condition (under RK4 the ant solves four times per physics step, twenty
 times per env step). `unrolled_solver(iterations, ls_iterations)` writes out exactly
 `iterations` trips, each kept only where the loop's own condition holds: the rows see the
-same sequence of solver updates as in the loop.
+same sequence of solver updates as in the loop. That holds because MJX's condition ends the
+loop after `iterations` trips (`solver_niter >= iterations`); the rule applies only to loops
+whose condition compares with that number.
 """
 
 import functools
@@ -26,6 +28,14 @@ def _holds_line_search(jaxpr: core.Jaxpr, ls_iterations: int) -> bool:
                for eqn in jaxpr.eqns)
 
 
+def _compares_with(jaxpr: core.Jaxpr, bound: int) -> bool:
+    """Whether `jaxpr` compares a value with the literal `bound` (the loop's trip limit)."""
+    comparisons = (primitives.lt_p, primitives.le_p, primitives.ge_p, primitives.gt_p)
+    return any(eqn.primitive in comparisons
+               and any(isinstance(v, core.Literal) and v.val == bound for v in eqn.invars)
+               for eqn in jaxpr.eqns)
+
+
 @functools.cache
 def unrolled_solver(iterations: int, ls_iterations: int) -> Rule:
     """The rule that writes out the while loops whose body holds the line search (the
@@ -33,6 +43,7 @@ def unrolled_solver(iterations: int, ls_iterations: int) -> Rule:
     rule."""
     def applies(eqn) -> bool:
         return (eqn.primitive is primitives.while_p
+                and _compares_with(eqn.params["cond_jaxpr"].jaxpr, iterations)
                 and _holds_line_search(eqn.params["body_jaxpr"].jaxpr, ls_iterations))
 
     def compute(eqn, inputs, params):

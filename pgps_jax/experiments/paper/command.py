@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, check_for_algorithm, for_task
 from pgps_jax.cli import run_dir as rundir
-from pgps_jax.cli.assignments import ENV_FIELDS, assignments, field_types
+from pgps_jax.cli.assignments import assignments, env_assignments, field_types
 from pgps_jax.cli.errors import EXIT_INTERRUPTED, UsageError, print_error, report
 from pgps_jax.envs import make_env
 from pgps_jax.experiments.paper import side_by_side
@@ -192,7 +192,7 @@ def main(argv=None) -> int:
                         checkpoint_every=args.checkpoint_every,
                         overrides=tuple(assignments(args.set, "--set",
                                                      field_types(PGPSConfig)).items()),
-                        env=tuple(assignments(args.env, "--env", ENV_FIELDS).items()))
+                        env=tuple(env_assignments(args.env).items()))
         environ = dict(os.environ)
         if args.concurrent > 1:  # this process only schedules: the GPUs' memory is the cells'
             os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
