@@ -6,11 +6,12 @@ same model and settings from the same warmed-up physics state: `n_frames` calls 
 `jax.vmap(mjx.step)` in a `lax.fori_loop` per env step, same random actions. At batch 60,
 Brax's own env (`brax.envs.get_environment(task, backend="mjx")`) as shipped and with our
 solver settings, started from our warmed-up positions and velocities (Brax's swimmer refuses
-the MJX backend). Also at batch 60, our env with Newton 2 iterations (the more accurate,
-slower settings of BENCHMARKS.md). Every function is compiled before any is timed; a figure
+the MJX backend). Also at batch 60, one variant of our env (`--alternative`: by default
+Newton with 2 iterations, the more accurate, slower settings of BENCHMARKS.md). Every function is compiled before any is timed; a figure
 is the median of 5 timed calls of 100 steps (Brax's env: 2 calls of 20 steps, it is slow).
 
     python -m benchmarks.env_latency  # table on stdout, benchmarks/results/env_latency.json
+    python -m benchmarks.env_latency --tasks ant --alternative unroll_solver=true --out ant.json
 """
 
 import argparse
@@ -25,11 +26,14 @@ import jax.numpy as jnp
 from mujoco import mjx
 import numpy as np
 
+from pgps_jax.cli.assignments import env_assignments
+from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import TASKS, make_env
 
 BATCHES = (10, 60, 1024)
 BRAX_BATCH = 60
 ALTERNATIVE = {"iterations": 2}
+"""`make_env` arguments of the one variant of our env also timed at batch 60 (`--alternative`)."""
 WARMUP, STEPS, REPEATS = 200, 100, 5
 BRAX_STEPS, BRAX_REPEATS = 20, 2
 BRAX_NAMES = {"halfcheetah": "halfcheetah", "hopper": "hopper", "walker2d": "walker2d",
@@ -94,7 +98,7 @@ def active_contacts(data) -> float:
     return float(jnp.mean(jnp.sum(data._impl.contact.dist < 0, axis=-1)))
 
 
-def build(task: str, pool: concurrent.futures.Executor) -> dict:
+def build(task: str, pool: concurrent.futures.Executor, alternative: dict) -> dict:
     """Starts compiling, on `pool`, every function one task's measurements need."""
     env = make_env(task)
     key = jax.random.PRNGKey(0)
@@ -103,7 +107,7 @@ def build(task: str, pool: concurrent.futures.Executor) -> dict:
         state = jax.eval_shape(jax.vmap(env.reset), jax.random.split(key, batch))
         jobs["env", batch] = (env_rollout(env, batch, STEPS), state, key)
         jobs["bare", batch] = (bare_rollout(env, batch, STEPS), state.pipeline_state, key)
-    alt = make_env(task, **ALTERNATIVE)
+    alt = make_env(task, **alternative)
     state = jax.eval_shape(jax.vmap(alt.reset), jax.random.split(key, BRAX_BATCH))
     jobs["alternative"] = (env_rollout(alt, BRAX_BATCH, STEPS), state, key)
     if task in BRAX_NAMES:
@@ -119,7 +123,7 @@ def build(task: str, pool: concurrent.futures.Executor) -> dict:
     return {"env": env} | {k: pool.submit(compile_fn, *job) for k, job in jobs.items()}
 
 
-def measure(task: str, fns: dict) -> dict:
+def measure(task: str, fns: dict, alternative: dict) -> dict:
     """Times one task's compiled functions; returns its figures."""
     env, key = fns["env"], jax.random.PRNGKey(1)
     out = {"n_frames": env.n_frames, "dt": env.dt, "physics": dataclasses.asdict(env.physics)}
@@ -135,7 +139,7 @@ def measure(task: str, fns: dict) -> dict:
             "done_fraction": float(state.done.mean())}
         if batch == BRAX_BATCH:
             warm = state
-    out[f"iterations_2_ms_batch_{BRAX_BATCH}"] = (
+    out[f"{alternative_name(alternative)}_ms_batch_{BRAX_BATCH}"] = (
         1e3 * timed(fns["alternative"], warm, key, REPEATS) / STEPS)
     for name in ("brax", "brax_same_settings"):
         if (name, "reset") not in fns:
@@ -150,13 +154,19 @@ def measure(task: str, fns: dict) -> dict:
     return out
 
 
-def table(results: dict) -> str:
+def alternative_name(alternative: dict) -> str:
+    """The variant's name in the results: `iterations_2` for {"iterations": 2}."""
+    return "_".join(f"{name}_{value}" for name, value in alternative.items())
+
+
+def table(results: dict, alternative: dict) -> str:
     """The results as a markdown table."""
+    variant = alternative_name(alternative)
     lines = ["| task | " + " | ".join(f"env ms @{b}" for b in BATCHES)
              + f" | floor ms @{BRAX_BATCH} | ratio @{BRAX_BATCH}"
              f" | ratio @{BATCHES[0]} / @{BATCHES[-1]}"
              f" | Brax env ms @{BRAX_BATCH} (as shipped / our settings)"
-             f" | ours, 2 iterations, ms @{BRAX_BATCH} |",
+             f" | ours, {variant}, ms @{BRAX_BATCH} |",
              "|---" * 8 + "|"]
     for task, r in results["tasks"].items():
         b = r[f"batch_{BRAX_BATCH}"]
@@ -167,7 +177,7 @@ def table(results: dict) -> str:
             f"| {task} | " + " | ".join(f"{r[f'batch_{x}']['env_ms']:.2f}" for x in BATCHES)
             + f" | {b['bare_ms']:.2f} | {b['ratio']:.2f} | {r[f'batch_{BATCHES[0]}']['ratio']:.2f}"
             f" / {r[f'batch_{BATCHES[-1]}']['ratio']:.2f} | {brax}"
-            f" | {r[f'iterations_2_ms_batch_{BRAX_BATCH}']:.2f} |")
+            f" | {r[f'{variant}_ms_batch_{BRAX_BATCH}']:.2f} |")
     return "\n".join(lines)
 
 
@@ -175,22 +185,30 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tasks", default=",".join(TASKS))
     parser.add_argument("--out", default="benchmarks/results/env_latency.json")
+    parser.add_argument("--alternative", nargs="*", metavar="NAME=VALUE",
+                        default=[f"{k}={v}" for k, v in ALTERNATIVE.items()],
+                        help="make_env arguments of the variant also timed at batch 60 "
+                             "(e.g. unroll_solver=true)")
     args = parser.parse_args()
+    try:
+        alternative = env_assignments(args.alternative, "--alternative")
+    except UsageError as e:
+        parser.error(str(e))
     tasks = args.tasks.split(",")
     start = time.perf_counter()
     with concurrent.futures.ThreadPoolExecutor(8) as pool:
-        pending = {task: build(task, pool) for task in tasks}
+        pending = {task: build(task, pool, alternative) for task in tasks}
         compiled = {task: {k: v if k == "env" else v.result() for k, v in fns.items()}
                     for task, fns in pending.items()}
     print(f"compiled in {time.perf_counter() - start:.0f} s", flush=True)
     results = {"device": jax.devices()[0].device_kind, "warmup_steps": WARMUP,
                "timed_steps": STEPS, "repeats": REPEATS, "tasks": {}}
     for task in tasks:
-        results["tasks"][task] = measure(task, compiled[task])
+        results["tasks"][task] = measure(task, compiled[task], alternative)
         print(task, json.dumps(results["tasks"][task]), flush=True)
         with open(args.out, "w") as f:
             json.dump(results, f, indent=1)
-    print(table(results))
+    print(table(results, alternative))
 
 
 if __name__ == "__main__":
