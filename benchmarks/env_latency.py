@@ -7,8 +7,9 @@ same model and settings from the same warmed-up physics state: `n_frames` calls 
 Brax's own env (`brax.envs.get_environment(task, backend="mjx")`) as shipped and with our
 solver settings, started from our warmed-up positions and velocities (Brax's swimmer refuses
 the MJX backend). Also at batch 60, one variant of our env (`--alternative`: by default
-Newton with 2 iterations, the more accurate, slower settings of BENCHMARKS.md). Every function is compiled before any is timed; a figure
-is the median of 5 timed calls of 100 steps (Brax's env: 2 calls of 20 steps, it is slow).
+Newton with 2 iterations, the more accurate, slower settings of BENCHMARKS.md). Every
+function is compiled before any is timed; a figure is the median of 5 timed calls of 100
+steps (Brax's env: 2 calls of 20 steps, it is slow).
 
     python -m benchmarks.env_latency  # table on stdout, benchmarks/results/env_latency.json
     python -m benchmarks.env_latency --tasks ant --alternative unroll_solver=true --out ant.json

@@ -74,26 +74,32 @@ def _step(env, unroll_line_search):
                                               unroll_line_search=unroll_line_search)))
 
 
-def test_unrolled_line_search_is_the_same_physics_without_device_loops():
-    """halfcheetah: MJX's line search is a 4-step scan; unrolled, the env step lowers with
-    no device loop but the frames' (a loop on the CPU, unrolled on a GPU) and gives the same
-    states."""
-    env = make_env("halfcheetah")
+def _assert_same_physics_without_its_loop(env, looped, unrolled, steps: int):
+    """`unrolled` (batched physics steps) lowers with no device loop but the frames' (a loop
+    on the CPU, unrolled on a GPU) where `looped` has more, and gives the same states over
+    `steps` calls from 3 reset states under random controls."""
     state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 3))
     controls = jax.random.uniform(jax.random.PRNGKey(1), (3, env.action_size), minval=-1,
                                   maxval=1)
     data = state.pipeline_state.replace(ctrl=controls)
-    looped, unrolled = _step(env, False), _step(env, True)
 
     def loops(fn):   # in the program handed to XLA
         return len(re.findall(r"stablehlo\.while", fn.lower(data).as_text()))
     frame_loops = 0 if jax.default_backend() == "gpu" else 1
     assert loops(looped) > frame_loops and loops(unrolled) == frame_loops
     a, b = data, data
-    for _ in range(5):
+    for _ in range(steps):
         a, b = looped(a), unrolled(b)
     for field in ("qpos", "qvel", "qacc_warmstart"):
         np.testing.assert_allclose(getattr(b, field), getattr(a, field), rtol=1e-5, atol=1e-5)
+
+
+def test_unrolled_line_search_is_the_same_physics_without_device_loops():
+    """halfcheetah: MJX's line search is a 4-step scan; unrolled, the env step lowers with
+    no device loop but the frames' (a loop on the CPU, unrolled on a GPU) and gives the same
+    states."""
+    env = make_env("halfcheetah")
+    _assert_same_physics_without_its_loop(env, _step(env, False), _step(env, True), steps=5)
 
 
 def test_only_scans_as_long_as_the_line_search_are_unrolled():
@@ -182,23 +188,9 @@ def test_unrolled_solver_is_the_same_ant_physics_without_its_loop():
     """ant (Newton, 2 iterations, RK4): the step with the solver's iterations written out
     lowers with no while loop left but the frames' and gives the same states."""
     env = make_env("ant")
-    state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 3))
-    controls = jax.random.uniform(jax.random.PRNGKey(1), (3, env.action_size), minval=-1,
-                                  maxval=1)
-    data = state.pipeline_state.replace(ctrl=controls)
 
     def step(unroll_solver):
         return jax.jit(jax.vmap(functools.partial(
             physics.step_frames, env.mjx_model, n_frames=2, unroll_line_search=True,
             unroll_solver=unroll_solver)))
-    looped, unrolled = step(False), step(True)
-
-    def loops(fn):
-        return len(re.findall(r"stablehlo\.while", fn.lower(data).as_text()))
-    frame_loops = 0 if jax.default_backend() == "gpu" else 1
-    assert loops(looped) > frame_loops and loops(unrolled) == frame_loops
-    a, b = data, data
-    for _ in range(3):
-        a, b = looped(a), unrolled(b)
-    for field in ("qpos", "qvel", "qacc_warmstart"):
-        np.testing.assert_allclose(getattr(b, field), getattr(a, field), rtol=1e-5, atol=1e-5)
+    _assert_same_physics_without_its_loop(env, step(False), step(True), steps=3)

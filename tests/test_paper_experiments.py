@@ -165,7 +165,8 @@ def test_an_unknown_name_or_a_bad_value_is_refused_with_the_choices():
         env_assignments(["iteration=2"])
     with pytest.raises(UsageError, match=r"--env: integrator must be one of \['euler', 'rk4'\]"):
         env_assignments(["integrator=rk5"])
-    with pytest.raises(UsageError, match="start_pose must be one of qpos0, init_qpos"):
+    with pytest.raises(UsageError,
+                       match="--env: unknown start_pose 'standing'; valid: qpos0, init_qpos"):
         env_assignments(["start_pose=standing"])
     with pytest.raises(UsageError, match="unroll_line_search must be true or false"):
         env_assignments(["unroll_line_search=maybe"])

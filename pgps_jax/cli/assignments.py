@@ -8,7 +8,7 @@ import yaml
 
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.cli.run_config import coerce
-from pgps_jax.envs.mjx_env import START_POSES
+from pgps_jax.envs.mjx_env import check_start_pose
 from pgps_jax.envs.physics import Physics
 
 ENV_FIELDS = {"start_pose": str, **typing.get_type_hints(Physics)}
@@ -51,9 +51,8 @@ def env_assignments(pairs: list[str], what: str = "--env") -> dict:
     physics = {name: value for name, value in values.items() if name != "start_pose"}
     try:
         Physics(**physics)
+        if "start_pose" in values:
+            check_start_pose(values["start_pose"])
     except ValueError as e:
         raise UsageError(f"{what}: {e}") from None
-    if values.get("start_pose", START_POSES[0]) not in START_POSES:
-        raise UsageError(f"{what} start_pose must be one of {', '.join(START_POSES)}, "
-                         f"got {values['start_pose']!r}")
     return values

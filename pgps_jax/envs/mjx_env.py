@@ -17,6 +17,12 @@ from pgps_jax.envs import nan_guard, physics
 from pgps_jax.envs.physics import Physics
 
 START_POSES = ("qpos0", "init_qpos")
+
+
+def check_start_pose(start_pose: str) -> None:
+    """A ValueError naming the choices unless `start_pose` is one of `START_POSES`."""
+    if start_pose not in START_POSES:
+        raise ValueError(f"unknown start_pose {start_pose!r}; valid: {', '.join(START_POSES)}")
 """Reset poses: the model's reference pose qpos0, as Gym's MuJoCo envs reset; or Brax's
 `init_qpos` keyframe where the model has one (ant), else qpos0."""
 
@@ -44,8 +50,7 @@ class MjxEnv(Env):
     def __init__(self, start_pose: str = "qpos0", **physics_overrides):
         """`start_pose`: the pose that reset adds noise to, one of `START_POSES`;
         `physics_overrides`: fields of `Physics` replacing the task's defaults."""
-        if start_pose not in START_POSES:
-            raise ValueError(f"unknown start_pose {start_pose!r}; valid: {', '.join(START_POSES)}")
+        check_start_pose(start_pose)
         self.physics = dataclasses.replace(self.default_physics, **physics_overrides)
         self.mj_model, self.mjx_model = physics.load_model(self.xml, self.physics)
         pose = (physics.init_qpos(self.mj_model) if start_pose == "init_qpos"

@@ -163,9 +163,9 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
     """Advances `data` by `n_frames` physics steps with its control held fixed.
 
     `write_out_linalg`, `unroll_line_search` and `unroll_solver` switch the rewrites of
-    `mjx_rewrites` on or off; None gives `Physics`'s defaults for `default_platform()` (on a
-    GPU: halfcheetah's physics per env step at batch 40 on an H200 takes 1.05 ms with the
-    first two instead of 1.33).
+    `mjx_rewrites` on or off; None for the first two gives `Physics`'s defaults for
+    `default_platform()` (on a GPU: halfcheetah's physics per env step at batch 40 on an H200
+    takes 1.05 ms with both instead of 1.33).
 
     The frames are unrolled: on the GPU every trip of a device loop pauses while the host reads
     its condition, which at these batch sizes costs more than the physics between the pauses

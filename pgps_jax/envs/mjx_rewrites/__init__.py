@@ -11,9 +11,10 @@
 The first two default to on for a GPU (the written-out linear algebra for models of up to
 `small_linalg.MAX_SIZE` degrees of freedom) and off for a CPU, where the library calls are
 faster; on an H200, halfcheetah's physics at batch 40 takes 1.05 ms per env step with both
-instead of 1.33 (BENCHMARKS.md). The third is off until its speed is measured. They re-trace `mjx.step` (`rewrite`) and match its code by primitive, shape
-and parameter names, as MJX and JAX were in `WRITTEN_FOR`; where a later version no longer
-fits a rule, MJX's own code runs and one warning says which rule.
+instead of 1.33 (BENCHMARKS.md). The third is off until its speed is measured. They re-trace
+`mjx.step` (`rewrite`) and match its code by primitive, shape and parameter names, as MJX
+and JAX were in `WRITTEN_FOR`; where a later version no longer fits a rule, MJX's own code
+runs and one warning says which rule.
 """
 
 from typing import Callable
