@@ -194,3 +194,18 @@ def test_unrolled_solver_is_the_same_ant_physics_without_its_loop():
             physics.step_frames, env.mjx_model, n_frames=2, unroll_line_search=True,
             unroll_solver=unroll_solver)))
     _assert_same_physics_without_its_loop(env, step(False), step(True), steps=3)
+
+
+def test_the_rewrites_follow_the_platform_by_default(monkeypatch):
+    """With the switches left at None, a program for a GPU has none of the device loops of
+    the ant's physics step (frames, solver iterations, line search); one for the CPU keeps
+    them."""
+    env = make_env("ant")
+    data = env.reset(jax.random.PRNGKey(0)).pipeline_state
+
+    def loops():
+        step = jax.jit(functools.partial(physics.step_frames, env.mjx_model, n_frames=2))
+        return len(re.findall(r"stablehlo\.while", step.lower(data).as_text()))
+    on_cpu = loops()
+    monkeypatch.setattr(physics, "default_platform", lambda: "gpu")
+    assert on_cpu > 1 and loops() == 0

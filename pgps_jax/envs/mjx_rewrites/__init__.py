@@ -8,13 +8,14 @@
 - `solver_loop`: the solver's iterations, when there are several, without a device loop
   (`Physics.unroll_solver`).
 
-The first two default to on for a GPU (the written-out linear algebra for models of up to
+All three default to on for a GPU (the written-out linear algebra for models of up to
 `small_linalg.MAX_SIZE` degrees of freedom) and off for a CPU, where the library calls are
-faster; on an H200, halfcheetah's physics at batch 40 takes 1.05 ms per env step with both
-instead of 1.33 (BENCHMARKS.md). The third is off until its speed is measured. They re-trace
-`mjx.step` (`rewrite`) and match its code by primitive, shape and parameter names, as MJX
-and JAX were in `WRITTEN_FOR`; where a later version no longer fits a rule, MJX's own code
-runs and one warning says which rule.
+faster and a loop's trip costs no pause for the host. On an H200, halfcheetah's physics at
+batch 40 takes 1.05 ms per env step with the first two instead of 1.33, and the ant's env step
+(2 solver iterations) at batch 60 7.56 ms with all three instead of 10.69 (BENCHMARKS.md).
+They re-trace `mjx.step` (`rewrite`) and match its code by primitive, shape and parameter
+names, as MJX and JAX were in `WRITTEN_FOR`; where a later version no longer fits a rule,
+MJX's own code runs and one warning says which rule.
 """
 
 from typing import Callable
