@@ -98,13 +98,15 @@ def test_physics_overrides_reach_the_model():
     assert (env.mj_model.opt.iterations, env.mj_model.opt.ls_iterations) == (3, 7)
     assert env.mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
     assert make_env("hopper").mj_model.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER
+    assert (make_env("hopper", integrator="implicitfast").mj_model.opt.integrator
+            == mujoco.mjtIntegrator.mjINT_IMPLICITFAST)
     assert not env.mj_model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_EULERDAMP
     assert make_env("hopper").mj_model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_EULERDAMP
     with pytest.raises(TypeError):
         make_env("hopper", substeps=2)
     with pytest.raises(ValueError, match="solver"):
         make_env("hopper", solver="pgs")
-    with pytest.raises(ValueError, match="integrator must be one of .'euler', 'rk4'."):
+    with pytest.raises(ValueError, match="integrator must be one of .'euler', 'implicitfast', 'rk4'."):
         make_env("hopper", integrator="implicit")
 
 

@@ -22,7 +22,8 @@ from pgps_jax.envs.mjx_rewrites import small_linalg
 
 _ASSETS = epath.resource_path(brax.__name__) / "envs/assets"
 _SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
-_INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4}
+_INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4,
+                "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}
 FLOOR_CONTACTS = ("model", "gym")
 """Which geoms touch the floor: those the Brax asset lets (ant: four zero-mass foot spheres
 that Brax added), or Gym's: every body geom with a 0.01 m contact margin, the added spheres
@@ -34,7 +35,8 @@ class Physics:
     """Constraint-solver settings of one task (MuJoCo `mjOption` fields)."""
 
     integrator: str = "euler"
-    """'euler' or 'rk4' (four forward passes per physics step)."""
+    """'euler', 'rk4' (four forward passes per physics step) or 'implicitfast' (damping and
+    velocity-dependent forces integrated implicitly, one forward pass)."""
     solver: str = "newton"
     """'newton' or 'cg' (MJX has no PGS)."""
     iterations: int = 1
