@@ -12,7 +12,7 @@ function is compiled before any is timed; a figure is the median of 5 timed call
 steps (Brax's env: 2 calls of 20 steps, it is slow).
 
     python -m benchmarks.env_latency  # table on stdout, benchmarks/results/env_latency.json
-    python -m benchmarks.env_latency --tasks ant --alternative unroll_solver=true --out ant.json
+    python -m benchmarks.env_latency --tasks ant --alternative unroll_solver=false --out ant.json
 """
 
 import argparse
@@ -189,7 +189,7 @@ def main():
     parser.add_argument("--alternative", nargs="*", metavar="NAME=VALUE",
                         default=[f"{k}={v}" for k, v in ALTERNATIVE.items()],
                         help="make_env arguments of the variant also timed at batch 60 "
-                             "(e.g. unroll_solver=true)")
+                             "(e.g. unroll_solver=false)")
     args = parser.parse_args()
     try:
         alternative = env_assignments(args.alternative, "--alternative")

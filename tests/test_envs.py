@@ -106,7 +106,8 @@ def test_physics_overrides_reach_the_model():
         make_env("hopper", substeps=2)
     with pytest.raises(ValueError, match="solver"):
         make_env("hopper", solver="pgs")
-    with pytest.raises(ValueError, match="integrator must be one of .'euler', 'implicitfast', 'rk4'."):
+    with pytest.raises(ValueError,
+                       match="integrator must be one of .'euler', 'implicitfast', 'rk4'."):
         make_env("hopper", integrator="implicit")
 
 

@@ -206,6 +206,7 @@ def test_the_rewrites_follow_the_platform_by_default(monkeypatch):
     def loops():
         step = jax.jit(functools.partial(physics.step_frames, env.mjx_model, n_frames=2))
         return len(re.findall(r"stablehlo\.while", step.lower(data).as_text()))
+    monkeypatch.setattr(physics, "default_platform", lambda: "cpu")
     on_cpu = loops()
     monkeypatch.setattr(physics, "default_platform", lambda: "gpu")
     assert on_cpu > 1 and loops() == 0

@@ -163,7 +163,9 @@ def test_set_reads_values_as_the_training_command_line_does():
 def test_an_unknown_name_or_a_bad_value_is_refused_with_the_choices():
     with pytest.raises(UsageError, match="'iteration=2'.*NAME one of start_pose, integrator"):
         env_assignments(["iteration=2"])
-    with pytest.raises(UsageError, match=r"--env: integrator must be one of \['euler', 'implicitfast', 'rk4'\]"):
+    with pytest.raises(UsageError,
+                       match=r"--env: integrator must be one of "
+                             r"\['euler', 'implicitfast', 'rk4'\]"):
         env_assignments(["integrator=rk5"])
     with pytest.raises(UsageError,
                        match="--env: unknown start_pose 'standing'; valid: qpos0, init_qpos"):

@@ -12,10 +12,10 @@ All three default to on for a GPU (the written-out linear algebra for models of 
 `small_linalg.MAX_SIZE` degrees of freedom) and off for a CPU, where the library calls are
 faster and a loop's trip costs no pause for the host. On an H200, halfcheetah's physics at
 batch 40 takes 1.05 ms per env step with the first two instead of 1.33, and the ant's env step
-(2 solver iterations) at batch 60 7.56 ms with all three instead of 10.69 (BENCHMARKS.md).
-They re-trace `mjx.step` (`rewrite`) and match its code by primitive, shape and parameter
-names, as MJX and JAX were in `WRITTEN_FOR`; where a later version no longer fits a rule,
-MJX's own code runs and one warning says which rule.
+(2 solver iterations) at batch 60 7.56 ms with its iterations written out instead of 10.69
+(BENCHMARKS.md). They re-trace `mjx.step` (`rewrite`) and match its code by primitive, shape
+and parameter names, as MJX and JAX were in `WRITTEN_FOR`; where a later version no longer
+fits a rule, MJX's own code runs and one warning says which rule.
 """
 
 from typing import Callable
