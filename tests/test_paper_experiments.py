@@ -67,7 +67,8 @@ def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrup
         for r in rows:  # the generation's elite is its best return
             assert float(r["elite_return"]) == pytest.approx(
                 max(float(r["return_0"]), float(r["return_1"])), rel=1e-6)
-        assert [int(r["generation"]) for r in rows] == list(range(1, result["generations"] + 1))
+        assert [int(r["generation"]) for r in rows] == list(range(1, len(rows) + 1))
+        assert len(rows) <= result["generations"]
         began = [TINY["warmup_steps"]] + [int(r["env_steps"]) for r in rows[:-1]]
         assert [int(r["q_filter_active"]) for r in rows] == [
             int(step >= TINY["q_filter_start"]) for step in began]
@@ -80,19 +81,20 @@ def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrup
     assert not (cell / "checkpoints").exists()  # a done cell keeps its results only
 
 
-def test_each_seed_is_reported_at_its_own_budget(uninterrupted):
-    """The batch trains until its last seed reaches the budget; a seed's result is of the
-    generation at which it first reached it (the two seeds get there at different ones)."""
+def test_each_seed_stops_at_its_own_budget(uninterrupted):
+    """A seed that reaches the budget waits for the others: its last generation is the one
+    that took it there, and its result is of that state."""
     out, (result,) = uninterrupted
     cell = out / "figure4" / "hopper" / "pgps"
-    overshoot = []
+    generations = []
     for seed in (1, 2):
         _, rows = read_csv(cell / f"seed{seed}_generations.csv")
         steps = [int(r["env_steps"]) for r in rows]
-        assert result["env_steps"][seed - 1] == next(s for s in steps if s >= BUDGET.steps)
-        overshoot.append(steps[-1] > result["env_steps"][seed - 1])
+        assert steps[-2] < BUDGET.steps <= steps[-1] == result["env_steps"][seed - 1]
+        generations.append(len(rows))
     if jax.default_backend() == "cpu":  # these seeds' CPU trajectories reach it apart
-        assert any(overshoot)
+        assert generations[0] != generations[1]
+    assert result["generations"] >= max(generations)
     assert not (cell / runner.AT_BUDGET).exists()
 
 

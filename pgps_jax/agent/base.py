@@ -96,7 +96,10 @@ class Agent:
     def init(self, key: jax.Array, eval_key: jax.Array | None = None) -> TrainState:
         raise NotImplementedError
 
-    def play(self, state: TrainState) -> tuple[TrainState, Played]:
+    def play(self, state: TrainState, active: jax.Array | bool = True
+             ) -> tuple[TrainState, Played]:
+        """The generation's episodes. `active` False: none of them plays a step (a seed
+        of a batch that waits this generation out, `pgps_jax.cli.loop`)."""
         raise NotImplementedError
 
     def learn(self, state: TrainState, played: Played) -> tuple[TrainState, dict]:
@@ -146,7 +149,8 @@ class Agent:
 
     def rollout(self, state: TrainState, actors: jax.Array, limits: jax.Array,
                 reset_key: jax.Array, rows: int, record: bool = True,
-                exploration: tuple[jax.Array, jax.Array] | None = None
+                exploration: tuple[jax.Array, jax.Array] | None = None,
+                active: jax.Array | bool = True
                 ) -> tuple[TrainState, EpisodeState, replay.Transition, jax.Array,
                            evaluation.Report]:
         """One episode of each of `actors` [B, P] (step limits [B]) from fresh start states,
@@ -154,6 +158,7 @@ class Agent:
         slots that do not drive the loop (they add no sequential env steps).
 
         exploration: (key, std [B]): Gaussian noise of that std on each actor's actions.
+        active: False plays no step (every limit 0, the evaluation not hurried).
         Returns `state` with its evaluation advanced, the actors' episodes, their
         transitions [rows, B] (empty unless `record`) and validity, and the evaluation's
         report.
@@ -163,10 +168,11 @@ class Agent:
         tests = evaluation.begin_if_due(tested, env, state.evaluation,
                                         self.evaluated_actors(state), state.total_steps)
         join = functools.partial(jax.tree.map, lambda a, b: jnp.concatenate([a, b]))
+        limits = jnp.where(active, limits, 0)
         episodes = begin_episodes(env, jax.random.split(reset_key, num_rollout), limits)
         num_tests = tests.episodes.alive.shape[0]
         test_slots = jnp.arange(num_rollout + num_tests) >= num_rollout
-        hurry = evaluation.must_end_now(tests, state.total_steps + limits.sum())
+        hurry = evaluation.must_end_now(tests, state.total_steps + limits.sum()) & active
         noise = None
         if exploration is not None:
             noise_key, std = exploration

@@ -112,12 +112,13 @@ class PGPS(Agent):
                           key=next_key, kept_population=kept)
 
     # --- one generation ---------------------------------------------------------------
-    def play(self, state: TrainState) -> tuple[TrainState, Played]:
+    def play(self, state: TrainState, active: jax.Array | bool = True
+             ) -> tuple[TrainState, Played]:
         """Algorithm 1 lines 6-18: the generation's actors and their episodes, with the test
         episodes of the evaluation under way alongside.
 
         Returns `state` with its evaluation advanced (and its key), and the episodes for
-        `learn`.
+        `learn`. `active` False: no episode plays a step (`Agent.play`).
         """
         self.check_state(state)
         config = self.config
@@ -141,7 +142,7 @@ class PGPS(Agent):
             limits = jnp.append(limits, jnp.where(td3_turn, limit, 0))
         with jax.named_scope("actors_evaluation"):
             state, episodes, transitions, valid, report = self.rollout(
-                state, actors, limits, reset_key, rows=config.t_max)
+                state, actors, limits, reset_key, rows=config.t_max, active=active)
         state = state.replace(key=next_key)
         return state, Played(population=population, episodes=episodes,
                              transitions=transitions, valid=valid, limit=limit,

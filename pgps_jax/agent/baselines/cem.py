@@ -66,7 +66,8 @@ class CEMAlone(Agent):
                                                           eval_key),
                           key=next_key, cem=cem.init(mean, self.config.sigma_init))
 
-    def play(self, state: TrainState) -> tuple[TrainState, Played]:
+    def play(self, state: TrainState, active: jax.Array | bool = True
+             ) -> tuple[TrainState, Played]:
         """N actors sampled from the search distribution play one episode each."""
         self.check_state(state)
         config = self.config
@@ -77,7 +78,7 @@ class CEMAlone(Agent):
         limit = episode_limit(state.total_steps, config)
         state, episodes, transitions, valid, report = self.rollout(
             state, population, jnp.full((config.pop_size,), limit), reset_key, rows=0,
-            record=False)
+            record=False, active=active)
         return state.replace(key=next_key), Played(
             population=population, episodes=episodes, transitions=transitions, valid=valid,
             limit=limit, td3_turn=jnp.zeros((), bool), train_key=next_key, evaluation=report)

@@ -56,7 +56,8 @@ class CEMRL(Agent):
         population = cem.ask(key, search, self.config.pop_size)
         return population.at[0].set(search.elite) if self.config.elitism else population
 
-    def play(self, state: TrainState) -> tuple[TrainState, Played]:
+    def play(self, state: TrainState, active: jax.Array | bool = True
+             ) -> tuple[TrainState, Played]:
         """The population drawn (and half trained) at the end of the last generation plays."""
         self.check_state(state)
         config = self.config
@@ -65,7 +66,7 @@ class CEMRL(Agent):
         limit = jnp.asarray(config.t_max, jnp.int32)
         state, episodes, transitions, valid, report = self.rollout(
             state, population, jnp.full((config.pop_size,), limit), reset_key,
-            rows=config.t_max)
+            rows=config.t_max, active=active)
         return state.replace(key=next_key), Played(
             population=population, episodes=episodes, transitions=transitions, valid=valid,
             limit=limit, td3_turn=jnp.zeros((), bool), train_key=train_key, evaluation=report)

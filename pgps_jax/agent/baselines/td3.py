@@ -42,7 +42,8 @@ class TD3Alone(Agent):
                           evaluation=self.idle_evaluation(actor[None], key, eval_key),
                           key=next_key, td3=td3_state, buffer=buffer)
 
-    def play(self, state: TrainState) -> tuple[TrainState, Played]:
+    def play(self, state: TrainState, active: jax.Array | bool = True
+             ) -> tuple[TrainState, Played]:
         """`exploring_episodes` exploring episodes of the actor, side by side."""
         self.check_state(state)
         config = self.config
@@ -52,7 +53,7 @@ class TD3Alone(Agent):
         limit = jnp.asarray(config.t_max, jnp.int32)
         state, episodes, transitions, valid, report = self.rollout(
             state, actors, jnp.full((k,), limit), reset_key, rows=config.t_max,
-            exploration=(noise_key, jnp.full((k,), config.exploration_noise)))
+            exploration=(noise_key, jnp.full((k,), config.exploration_noise)), active=active)
         return state.replace(key=next_key), Played(
             population=actors, episodes=episodes, transitions=transitions, valid=valid,
             limit=limit, td3_turn=jnp.ones((), bool), train_key=train_key, evaluation=report)

@@ -5,12 +5,16 @@ Seed k of a cell has the keys of `python -m pgps_jax.train env=<task> seed=k` wi
 configuration: PRNGKey(k), evaluations from PRNGKey(k + 100) (vmapped, its arithmetic may
 differ from the single run's in the last bits, and the runs drift apart). The seeds form one batch
 (`pgps_jax.cli.loop`, `seeds=True`) whose leading axis is sharded over a one-axis device mesh
-(`seeds`); a batch that does not divide evenly is padded with the next seeds, run and dropped.
-One host: the loop fetches each generation's metrics to this process.
+(`seeds`); a batch that does not divide evenly is padded with the next seeds, which never
+play. One host: the loop fetches each generation's metrics to this process.
 
-The batch trains until every seed has its budget of env steps, so some seeds run a few
-generations past it: their curves keep the evaluations that began within the budget, and
-`result.json` gives the env steps of the state each seed's final evaluation tested.
+The seeds play their generations side by side, and a generation lasts as long as its longest
+rollout and its most updates. A seed's generations are as long as its episodes: on a task
+whose episodes end early, some seeds get ahead in env steps. A seed more than one
+generation's steps (`Programs.generation_steps`) ahead of the furthest-behind, or at its
+budget, waits (`playing_seeds`): it plays no step and keeps its state, so its generations
+are the same as in lockstep and no seed trains past its budget. `result.json` gives the env
+steps of the state each seed's final evaluation tested.
 
 A cell's folder holds, per seed, `seed<k>.csv`: its test evaluations up to the budget in the
 authors' format (Step, Mean, Std, Reward1..RewardE of the actor the algorithm reports: μ, or
@@ -86,6 +90,17 @@ def padded_seeds(seeds: int, devices: int) -> int:
     return math.ceil(seeds / devices) * devices
 
 
+def playing_seeds(steps: np.ndarray, budget: Budget, lead: int) -> np.ndarray:
+    """[batch] bool: the seeds that play the next generation. Those below the budget play
+    unless more than `lead` env steps ahead of the furthest-behind of them; the others, and
+    the padding seeds, wait."""
+    below = np.zeros(steps.shape, bool)
+    below[:budget.seeds] = steps[:budget.seeds] < budget.steps
+    if not below.any():
+        return below
+    return below & (steps <= steps[below].min() + lead)
+
+
 def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
              on_generation: Optional[Callable[[int, np.ndarray], None]] = None) -> dict:
     """Runs `cell` to `budget.steps` in `directory` (continuing its checkpoint if it has one)
@@ -112,7 +127,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     try:
         if checkpoints.latest_step() is None:
             programs = loop.Programs.compile(agent, keys, eval_keys, seeds=True,
-                                             sharding=sharding)
+                                             sharding=sharding, waiting=True)
             state = programs["init"](keys, eval_keys)
             generation, elapsed = 0, 0.0
             curves = {actor: [[] for _ in range(batch)] for actor in agent.evaluated}
@@ -129,21 +144,23 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             curves, populations = meta["curves"], meta["populations"]
             elapsed = meta["elapsed_s"]
             programs = loop.Programs.compile(agent, keys, eval_keys, seeds=True,
-                                             sharding=sharding, restored=shapes)
+                                             sharding=sharding, restored=shapes,
+                                             waiting=True)
         steps = np.asarray(jax.device_get(state.total_steps))
         at_budget = AtBudget.read(directory, budget.seeds, generation)
         at_budget.record(generation, steps, state, agent, budget, directory)
         population_keys = [m.key for m in _population_metrics(agent)]
         while steps[:budget.seeds].min() < budget.steps:
-            state, done = loop.generation(programs, state)
+            active = playing_seeds(steps, budget, programs.generation_steps)
+            state, done = loop.generation(programs, state, active=active)
             generation += 1
             m = done.metrics
-            for seed in np.flatnonzero(m["eval/done"]):
+            for seed in np.flatnonzero(m["eval/done"] & active):
                 _add_evaluation(curves, m, seed, int(m["eval/step"][seed]))
-            for seed in range(batch):
-                populations[seed].append([generation] + [
+            for seed in np.flatnonzero(active):
+                populations[seed].append([int(m["gen/generation"][seed])] + [
                     np.asarray(m[key][seed]).item() for key in population_keys])
-            steps = np.asarray(m["gen/total_steps"])
+            steps = np.where(active, m["gen/total_steps"], steps)
             at_budget.record(generation, steps, state, agent, budget, directory)
             if generation % budget.checkpoint_every == 0:
                 checkpoints.save(generation, state, {
@@ -182,12 +199,13 @@ class AtBudget:
     """Each seed's evaluated actors [A, P], env steps and generation when it first reached
     the budget.
 
-    The seeds of a cell train in one batch until the last of them reaches the budget (with
-    early terminations, seeds take different numbers of generations to get there); a seed's
-    final evaluation is of its actors at its own budget, as its curve ends there. Kept in
-    the cell's `AT_BUDGET` file for a cut-off cell: a cell continued from its checkpoint at
-    generation g keeps the records of generations up to g and makes the later ones again
-    from its replayed generations (which a GPU need not replay bit for bit)."""
+    A seed's final evaluation is of its actors at its own budget, as its curve ends there.
+    A seed at its budget waits (`playing_seeds`), so these are its final state's actors; the
+    record also serves a cell continued from a checkpoint written while seeds still trained
+    past their budget. Kept in the cell's `AT_BUDGET` file for a cut-off cell: a cell
+    continued from its checkpoint at generation g keeps the records of generations up to g
+    and makes the later ones again from its replayed generations (which a GPU need not replay
+    bit for bit)."""
 
     actors: list
     """Per seed: its actors (numpy), or None while it is below the budget."""
