@@ -17,14 +17,15 @@ from pgps_jax.envs import nan_guard, physics
 from pgps_jax.envs.physics import Physics
 
 START_POSES = ("qpos0", "init_qpos")
+"""Reset poses: the model's reference pose qpos0, as Gym's MuJoCo envs reset; or Brax's
+`init_qpos` keyframe where the model has one (ant), else qpos0."""
 
 
 def check_start_pose(start_pose: str) -> None:
     """A ValueError naming the choices unless `start_pose` is one of `START_POSES`."""
     if start_pose not in START_POSES:
         raise ValueError(f"unknown start_pose {start_pose!r}; valid: {', '.join(START_POSES)}")
-"""Reset poses: the model's reference pose qpos0, as Gym's MuJoCo envs reset; or Brax's
-`init_qpos` keyframe where the model has one (ant), else qpos0."""
+
 
 METRICS = ("x_position", "x_velocity", "reward_forward", "reward_ctrl", "reward_healthy",
            "unstable")
