@@ -132,6 +132,16 @@ def test_a_done_cell_is_not_run_again(uninterrupted):
     assert (out / "figure4" / "hopper" / "pgps" / runner.RESULT).stat().st_mtime_ns == before
 
 
+def test_the_report_alone_writes_the_table_of_final_returns_again(uninterrupted):
+    out, _ = uninterrupted
+    table = out / "figure4" / command.FINAL_RETURNS
+    before = table.read_text()
+    table.unlink()
+    assert command.main(["figure4", "--report", "--out", str(out),
+                         "--reference", str(REPO / command.REFERENCE)]) == 0
+    assert table.read_text() == before
+
+
 def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
     out, _ = uninterrupted
     longer = dataclasses.replace(BUDGET, steps=800)

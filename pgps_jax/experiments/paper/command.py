@@ -6,7 +6,7 @@
     python -m pgps_jax.experiments.paper figure4 --tasks ant --env floor_contacts=model \
         integrator=euler iterations=1 --out runs/ant_brax_physics
     python -m pgps_jax.experiments.paper figure4 --concurrent 5   # 5 cells at once, own processes
-    python -m pgps_jax.experiments.paper figure4 --report         # figures and tables only
+    python -m pgps_jax.experiments.paper figure4 --report         # tables and figures only
 
 Results go to `<out>/<experiment>/<task>/<config>/` (`runner`), the final returns of every
 done cell to `<out>/<experiment>/final_returns.csv`, and the figures and the table of the
@@ -82,11 +82,8 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
                                           else child_environ))
         return [_run_in_turn(experiment, out, budget, cell, progress) for cell in chosen]
     finally:  # the tables and figures of every done cell, whatever became of the others
-        done = [json.loads(p.read_text())
-                for p in sorted((out / experiment).glob(f"*/*/{RESULT}"))]
-        if done:
-            write_final_returns(out / experiment / FINAL_RETURNS, done)
-            write_report(experiment, out, reference)
+        if any((out / experiment).glob(f"*/*/{RESULT}")):
+            write_summary(experiment, out, reference)
 
 
 def _run_in_turn(experiment: str, out: pathlib.Path, budget: Budget, cell: Cell,
@@ -127,6 +124,19 @@ def require_reference(reference: pathlib.Path) -> None:
     if not reference.is_dir():
         raise UsageError(f"--reference {reference}: no such folder (the authors' curves, "
                          "<task>/<seed>.csv; run from the repository's root or name it)")
+
+
+def write_summary(experiment: str, out: pathlib.Path, reference: pathlib.Path
+                  ) -> list[pathlib.Path]:
+    """The table of final returns (`FINAL_RETURNS`) and the report of every done cell of
+    `experiment` under `out`; returns the paths written. UsageError if no cell is done."""
+    done = [json.loads(p.read_text())
+            for p in sorted((out / experiment).glob(f"*/*/{RESULT}"))]
+    if not done:
+        raise UsageError(f"no results of {experiment} under {out}")
+    path = out / experiment / FINAL_RETURNS
+    write_final_returns(path, done)
+    return [path] + write_report(experiment, out, reference)
 
 
 def write_final_returns(path: pathlib.Path, results: list[dict]) -> None:
@@ -177,7 +187,7 @@ def main(argv=None) -> int:
             except ValueError as e:
                 raise UsageError(str(e)) from None
             require_reference(args.reference)
-            for path in write_report(args.experiment, args.out, args.reference):
+            for path in write_summary(args.experiment, args.out, args.reference):
                 print(path)
             return 0
         for name in ("steps", "seeds", "checkpoint_every", "concurrent"):
