@@ -15,7 +15,8 @@ command's start to its end, with each cell's own wall-clock from its `result.jso
     python -m benchmarks.grid_throughput grid --concurrent 5 --out runs/grid
     python -m benchmarks.grid_throughput seeds --smoke    # tiny sizes: a CPU check of the script
 
-Entries are appended to `benchmarks/results/grid_throughput.json` after each measurement.
+Entries are appended to `benchmarks/results/grid_throughput.json` after each measurement (a
+`seeds` entry is rewritten after each seed count).
 """
 
 import argparse
@@ -25,6 +26,7 @@ import pathlib
 import subprocess
 import sys
 import time
+from typing import Iterator
 
 import jax
 import jax.numpy as jnp
@@ -47,8 +49,9 @@ def late_run_steps(config) -> int:
     return max(config.q_filter_start, increments * config.t_interval)
 
 
-def seeds_cost(task: str, seed_counts: list[int], smoke: bool) -> dict:
-    """One late-run generation of S seeds vmapped, for each S in `seed_counts`."""
+def seeds_cost(task: str, seed_counts: list[int], smoke: bool) -> Iterator[dict]:
+    """One late-run generation of S seeds vmapped, for each S in `seed_counts`; yields the
+    task's entry after each S (so a run cut short keeps the counts it measured)."""
     config = for_task(task, **(SMOKE if smoke else {}))
     agent = PGPS(config, make_env(task), EvaluationConfig())
     late = late_run_steps(config)
@@ -62,13 +65,12 @@ def seeds_cost(task: str, seed_counts: list[int], smoke: bool) -> dict:
             evaluation=state.evaluation.replace(
                 next_due=jnp.full((seeds,), 2**30, jnp.int32)))
         compile_s, generation_s = timed(step, state, repeats=3)
-        rows.append({"seeds": seeds, "generation_s": generation_s, "compile_and_run_s": compile_s})
-        print(json.dumps({"task": task, **rows[-1]}), flush=True)
-    fewest = rows[0]["generation_s"] / rows[0]["seeds"]
-    for row in rows:  # against the first (fewest) seed count: 1 by default
-        row["cost_per_seed_vs_fewest"] = row["generation_s"] / row["seeds"] / fewest
-    return {"kind": "seeds", "task": task, "pop_size": config.pop_size, "T": config.t_max,
-            "env_steps_at": late, "rows": rows}
+        fewest = rows[0]["generation_s"] / rows[0]["seeds"] if rows else generation_s / seeds
+        rows.append({"seeds": seeds, "generation_s": generation_s, "compile_and_run_s": compile_s,
+                     # against the first (fewest) seed count: 1 by default
+                     "cost_per_seed_vs_fewest": generation_s / seeds / fewest})
+        yield {"kind": "seeds", "task": task, "pop_size": config.pop_size, "T": config.t_max,
+               "env_steps_at": late, "rows": list(rows)}
 
 
 def mps_running() -> bool:
@@ -128,7 +130,9 @@ def main() -> None:
     header = provenance()
     saved = json.loads(args.results.read_text()) if args.results.exists() else []
 
-    def record(entry: dict) -> None:
+    def record(entry: dict, replacing_last: bool = False) -> None:
+        if replacing_last:
+            saved.pop()
         saved.append({**header, **entry})
         print(json.dumps(saved[-1]), flush=True)
         args.results.parent.mkdir(parents=True, exist_ok=True)
@@ -136,7 +140,8 @@ def main() -> None:
 
     if args.measure == "seeds":
         for task in args.tasks:
-            record(seeds_cost(task, args.seeds, args.smoke))
+            for measured, entry in enumerate(seeds_cost(task, args.seeds, args.smoke)):
+                record(entry, replacing_last=measured > 0)
     else:
         record(grid(args.tasks, args.concurrent, args.out, args.steps if not args.smoke else 600,
                     args.grid_seeds, args.smoke, environ))
