@@ -34,6 +34,7 @@ import jax.numpy as jnp
 from benchmarks.timing import provenance, timed
 from pgps_jax.agent.config import EvaluationConfig, for_task
 from pgps_jax.agent.pgps import PGPS
+from pgps_jax.cli import run_dir as rundir
 from pgps_jax.envs import TASKS, make_env
 
 RESULTS = pathlib.Path("benchmarks/results/grid_throughput.json")
@@ -136,7 +137,7 @@ def main() -> None:
         saved.append({**header, **entry})
         print(json.dumps(saved[-1]), flush=True)
         args.results.parent.mkdir(parents=True, exist_ok=True)
-        args.results.write_text(json.dumps(saved, indent=1))
+        rundir.write_atomic(args.results, json.dumps(saved, indent=1).encode())
 
     if args.measure == "seeds":
         for task in args.tasks:

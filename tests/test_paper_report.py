@@ -142,6 +142,16 @@ def test_no_results_is_a_usage_error(tmp_path):
         report.write_report("figure4", tmp_path, tmp_path)
 
 
+def test_the_summary_of_cells_under_way_draws_them_without_a_table_of_final_returns(tmp_path):
+    from pgps_jax.experiments.paper import command
+    running = tmp_path / "figure4" / "hopper" / "pgps"  # curves so far, no result yet
+    running.mkdir(parents=True)
+    _curve(running / "seed1.csv", [10_000, 20_000], [1.0, 2.0])
+    written = command.write_summary("figure4", tmp_path, tmp_path / "reference")
+    assert written == [tmp_path / "figure4" / "hopper.png", tmp_path / "figure4" / report.REPORT]
+    assert not (tmp_path / "figure4" / command.FINAL_RETURNS).exists()
+
+
 def test_table1_normalises_each_task_by_the_base_model_s_better_actor():
     def result(mu, td3, wall):
         return {"final": {"mu": mu, "td3": td3}, "wall_s": wall}

@@ -128,15 +128,15 @@ def require_reference(reference: pathlib.Path) -> None:
 
 def write_summary(experiment: str, out: pathlib.Path, reference: pathlib.Path
                   ) -> list[pathlib.Path]:
-    """The table of final returns (`FINAL_RETURNS`) and the report of every done cell of
-    `experiment` under `out`; returns the paths written. UsageError if no cell is done."""
+    """The table of final returns of the done cells of `experiment` under `out`
+    (`FINAL_RETURNS`, if any is done) and the report of every cell with results there;
+    returns the paths written (UsageError from `write_report` if there are none)."""
     done = [json.loads(p.read_text())
             for p in sorted((out / experiment).glob(f"*/*/{RESULT}"))]
-    if not done:
-        raise UsageError(f"no results of {experiment} under {out}")
-    path = out / experiment / FINAL_RETURNS
-    write_final_returns(path, done)
-    return [path] + write_report(experiment, out, reference)
+    table = out / experiment / FINAL_RETURNS
+    if done:
+        write_final_returns(table, done)
+    return ([table] if done else []) + write_report(experiment, out, reference)
 
 
 def write_final_returns(path: pathlib.Path, results: list[dict]) -> None:
