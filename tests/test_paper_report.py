@@ -152,6 +152,23 @@ def test_the_summary_of_cells_under_way_draws_them_without_a_table_of_final_retu
     assert not (tmp_path / "figure4" / command.FINAL_RETURNS).exists()
 
 
+def test_a_run_is_labelled_with_what_it_changed_from_its_cell_s_configuration():
+    import dataclasses
+    from pgps_jax.agent.config import for_task
+    from pgps_jax.experiments.paper.grid import Cell
+    cell = Cell("swimmer", "without_ea_guidance", {"ea_guides_pg": False})
+    as_run = json.loads(json.dumps(dataclasses.asdict(for_task("swimmer", ea_guides_pg=False))))
+
+    def result(config, env):
+        return {"settings": {"config": config, "env": env}}
+    assert report.run_label(cell.config, result(as_run, {}), cell) == "ours: without_ea_guidance"
+    changed = {**as_run, "resample_before_q_filter": False, "actor_hidden": [16]}
+    assert report.run_label(cell.config, result(changed, {"iterations": 4}), cell) == (
+        "ours: without_ea_guidance (actor_hidden=[16], resample_before_q_filter=false, "
+        "iterations=4)")
+    assert report.run_label("brax_sac", {"final": {}}, None) == "ours: brax_sac"
+
+
 def test_table1_normalises_each_task_by_the_base_model_s_better_actor():
     def result(mu, td3, wall):
         return {"final": {"mu": mu, "td3": td3}, "wall_s": wall}

@@ -1,17 +1,17 @@
 """An experiment's report from its cells' results: the learning curves of the actor each
-algorithm reports (μ; TD3 alone's actor) beside the authors' published ones, and the final returns with their interquartile mean (IQM) and its 95 %
-stratified-bootstrap confidence interval (Agarwal et al., 2021, "Deep reinforcement learning
-at the edge of the statistical precipice": rliable's `StratifiedBootstrap`, percentile
-interval).
+algorithm reports (μ; TD3 alone's actor) beside the authors' published ones, and the final
+returns with their interquartile mean (IQM) and its 95 % stratified-bootstrap confidence
+interval (Agarwal et al., 2021, "Deep reinforcement learning at the edge of the statistical
+precipice": rliable's `StratifiedBootstrap`, percentile interval).
 
 Writes into `<out>/<experiment>/`: `<task>.png` (the test return against env steps, mean ± std
 over the seeds, of every configuration run on the task — and of any other folder there with a
 `result.json`, the peers of `benchmarks.peers` — and the paper's PGPS; of the TD3 actor in
-`figure5`, as the paper's Figure 5), `final_returns.md` (per task and configuration: the
-env steps, the final return of each seed, mean ± std, IQM [95 % CI], and the paper's); for
-`figure6` also `<task>_<config>_q_filter.png` (Figure 6: per 10k env steps, the mean return of
-the Q-filtered actors and of the randomly sampled ones), and for `table1` also `table1.md`
-(`table1_rows`). "std" is the sample std over seeds throughout.
+`figure5`, as the paper's Figure 5), `final_returns.md` (per task and run, labelled by
+`run_label`: the env steps, the final return of each seed, mean ± std, IQM [95 % CI], and the
+paper's); for `figure6` also `<task>_<config>_q_filter.png` (Figure 6: per 10k env steps, the
+mean return of the Q-filtered actors and of the randomly sampled ones), and for `table1` also
+`table1.md` (`table1_rows`). "std" is the sample std over seeds throughout.
 """
 
 import csv
@@ -23,9 +23,10 @@ from typing import Optional
 import jax
 import numpy as np
 
+from pgps_jax.agent.config import for_task
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import UsageError
-from pgps_jax.experiments.paper.grid import cells
+from pgps_jax.experiments.paper.grid import Cell, cells
 from pgps_jax.experiments.paper.runner import seed_file
 
 REFERENCE = pathlib.Path("benchmarks/reference/pgps_curves")
@@ -124,10 +125,27 @@ def _seed_files(directory: pathlib.Path, actor: Optional[str]) -> list[pathlib.P
             if (directory / seed_file(seed, actor)).exists()]
 
 
-def _ours(directory: pathlib.Path, actor: Optional[str] = None
+def run_label(config: str, result: Optional[dict], cell: Optional[Cell]) -> str:
+    """`ours: <config>`, followed by what the run changed from its cell's configuration in the
+    grid (`--set` fields, `--env` arguments), as `FIELD=VALUE`s in parentheses."""
+    settings = (result or {}).get("settings")
+    if cell is None or settings is None:
+        return f"ours: {config}"
+    grid_config = json.loads(json.dumps(dataclasses.asdict(
+        for_task(cell.task, cell.algo, **dict(cell.overrides)))))
+    changed = {name: value for name, value in settings["config"].items()
+               if name in grid_config and value != grid_config[name]}
+    changed.update(settings.get("env", {}))
+    shown = ", ".join(f"{name}={json.dumps(value) if not isinstance(value, str) else value}"
+                      for name, value in changed.items())
+    return f"ours: {config}" + (f" ({shown})" if shown else "")
+
+
+def _ours(directory: pathlib.Path, actor: Optional[str] = None, cell: Optional[Cell] = None
           ) -> tuple[Optional[Curves], Optional[Finals], Optional[dict]]:
     """A cell's curves of `actor` (None: the actor its algorithm reports; those written so
-    far) and, once it is done, its final returns and its `result.json`."""
+    far) and, once it is done, its final returns (labelled by `run_label`) and its
+    `result.json`."""
     read = [read_curve(p) for p in _seed_files(directory, actor)]
     curves = on_grid(read) if read and all(len(s) for s, _ in read) else None
     path = directory / "result.json"
@@ -136,7 +154,7 @@ def _ours(directory: pathlib.Path, actor: Optional[str] = None
     result = json.loads(path.read_text())
     reported = actor or next(iter(result["final"]))  # the algorithm's evaluated actors, in order
     steps = (min(result["env_steps"]), max(result["env_steps"]))
-    return curves, Finals(f"ours: {result['config']}", steps,
+    return curves, Finals(run_label(result["config"], result, cell), steps,
                           np.array(result["final"][reported])), result
 
 
@@ -165,19 +183,20 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
     key = jax.random.PRNGKey(BOOTSTRAP_SEED)
     written, table, done = [], [], {}
     for task in tasks:
-        configs = [c.config for c in cells(experiment, (task,))]
-        configs += sorted(d.name for d in (root / task).glob("*/")  # peers (benchmarks.peers)
-                          if d.name not in configs and (d / "result.json").exists())
-        ours = {config: _ours(root / task / config, actor) for config in configs
-                if (root / task / config).is_dir()}
+        grid = {c.config: c for c in cells(experiment, (task,))}
+        configs = list(grid) + sorted(  # and the peers of benchmarks.peers
+            d.name for d in (root / task).glob("*/")
+            if d.name not in grid and (d / "result.json").exists())
+        ours = {config: _ours(root / task / config, actor, grid.get(config))
+                for config in configs if (root / task / config).is_dir()}
         if not ours:
             continue
         done.update({(task, config): result for config, (_, _, result) in ours.items()
                      if result is not None})
         paper = _paper(reference, task) if actor is None else (None, None)
         fig, ax = plt.subplots(figsize=(6, 4))
-        for label, (curves, _) in [*((f"ours: {c}", v[:2]) for c, v in ours.items()),
-                                   ("paper: PGPS", paper)]:
+        for label, (curves, _) in [*((run_label(c, v[2], grid.get(c)), v[:2])
+                                     for c, v in ours.items()), ("paper: PGPS", paper)]:
             if curves is None:
                 continue
             mean, std = curves.returns.mean(0), sample_std(curves.returns)
