@@ -18,6 +18,7 @@ import csv
 import dataclasses
 import json
 import pathlib
+import textwrap
 from typing import Optional
 
 import jax
@@ -38,6 +39,8 @@ BOOTSTRAP_SEED = 0
 """Every row's bootstrap draws from PRNGKey(BOOTSTRAP_SEED): the same returns, the same
 interval."""
 REPORT = "final_returns.md"
+LEGEND_WIDTH = 60
+"""Characters per line of a figure's legend entry."""
 REPORTED_ACTOR = {"figure5": "td3"}
 """The actor whose curves and final returns an experiment reports, where it is not the one
 each algorithm reports (μ; TD3 alone's actor)."""
@@ -200,7 +203,8 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
             if curves is None:
                 continue
             mean, std = curves.returns.mean(0), sample_std(curves.returns)
-            line, = ax.plot(curves.steps, mean, label=f"{label} ({len(curves.returns)} seeds)")
+            line, = ax.plot(curves.steps, mean, label=textwrap.fill(  # long --set lists wrap
+                f"{label} ({len(curves.returns)} seeds)", LEGEND_WIDTH))
             ax.fill_between(curves.steps, mean - std, mean + std, alpha=0.2,
                             color=line.get_color())
         ax.set(title=task, xlabel="env steps",
