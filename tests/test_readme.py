@@ -5,6 +5,7 @@ import pathlib
 import re
 
 import pgps_jax.agent.config
+import pgps_jax.agent.pgps  # loaded before the patches below: its defaults call EvaluationConfig
 import pgps_jax.envs
 from pgps_jax.envs.point import PointMass
 
