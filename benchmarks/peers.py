@@ -2,17 +2,22 @@
 paper experiments' report draws them beside PGPS and the baselines.
 
     python -m benchmarks.peers --algo sac --task halfcheetah            # 1M steps, seeds 1-5
+    python -m benchmarks.peers --algo sac --task hopper --concurrent 5  # 5 seeds at once
     python -m benchmarks.peers --algo ppo --task hopper --seeds 3
 
 Runs `brax.training.agents.<algo>.train` on `make_env(task)` (the model and solver settings
-PGPS trains on) for `--steps` env steps per seed, one seed after the other, with the settings
-below: Brax's published SAC and PPO settings for its MuJoCo tasks, with 1000-step episodes,
-observation normalisation and a deterministic test of 16 episodes at each evaluation. Each
-seed's curve goes to `<out>/figure4/<task>/brax_<algo>/seed<k>.csv` (Step, Mean, Std: Brax
-reports the mean and std of its test episodes, not the episodes), and `result.json` holds the
-final returns (the last evaluation, at the last multiple of the evaluation spacing within
-`--steps`), the settings, the wall-clock per seed including
-compilation and the device.
+PGPS trains on) for `--steps` env steps per seed, with the settings below: Brax's published
+SAC and PPO settings for its MuJoCo tasks, with 1000-step episodes, observation normalisation
+and a deterministic test of 16 episodes at each evaluation. Seeds run one after the other, or
+`--concurrent` at a time in processes of their own, placed on the visible GPUs as the
+experiment runner places its cells (a seed's training is a chain of small kernels that leaves
+a GPU mostly idle). Each seed's curve goes to `<out>/figure4/<task>/brax_<algo>/seed<k>.csv`
+(Step, Mean, Std: Brax reports the mean and std of its test episodes, not the episodes) and
+its final return (the last evaluation, at the last multiple of the evaluation spacing within
+`--steps`) and wall-clock, compilation included, to `seed<k>.json`. A seed with its
+`seed<k>.json` is done and not run again, so a cut-off command continues with the seeds it
+had not finished. `result.json` gathers the seeds' records, the settings and the device once
+every seed is done.
 
 Brax 0.14.2 calls `jax.device_put_replicated`, which current JAX has removed; it is mapped to
 `jax.device_put` of the stacked tree here.
@@ -20,7 +25,11 @@ Brax 0.14.2 calls `jax.device_put_replicated`, which current JAX has removed; it
 
 import argparse
 import json
+import os
 import pathlib
+import subprocess
+import sys
+import tempfile
 import time
 
 import jax
@@ -30,6 +39,7 @@ from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import make_env
+from pgps_jax.experiments.paper.side_by_side import placements
 
 SETTINGS = {
     "sac": dict(episode_length=1000, num_envs=64, num_eval_envs=16, batch_size=256,
@@ -98,12 +108,70 @@ def train_seed(algo: str, task: str, steps: int, seed: int, every: int,
     return rows, time.perf_counter() - start
 
 
+def run_seed(algo: str, task: str, steps: int, seed: int, every: int, normalize: bool,
+             env_kwargs: dict, directory: pathlib.Path) -> None:
+    """Trains one seed and writes its curve and its record (final return, wall-clock)."""
+    rows, wall = train_seed(algo, task, steps, seed, every, normalize, env_kwargs)
+    rundir.write_csv(directory / f"seed{seed}.csv", ["", "Step", "Mean", "Std"],
+                     [[i, *row] for i, row in enumerate(rows)])
+    record = {"seed": seed, "env_steps": int(rows[-1][0]), "final": rows[-1][1], "wall_s": wall,
+              "device": f"1 × {jax.devices()[0].device_kind}"}
+    rundir.write_atomic(directory / f"seed{seed}.json", json.dumps(record).encode())
+
+
+def run_concurrently(argv: list[str], seeds: list[int], concurrent: int) -> list[str]:
+    """Runs each of `seeds` as this command with `--seed k`, `concurrent` at a time in processes
+    of their own; returns what the failed ones said (their last lines of stderr)."""
+    slots = placements(min(concurrent, len(seeds)), jax.default_backend(),
+                       jax.local_device_count(), os.environ.get("CUDA_VISIBLE_DEVICES"))
+    inherited = {k: v for k, v in os.environ.items()
+                 if k not in ("XLA_PYTHON_CLIENT_MEM_FRACTION", "XLA_PYTHON_CLIENT_PREALLOCATE")}
+    waiting, running, failures = list(seeds), {}, []
+    while waiting or running:
+        for slot in range(len(slots)):
+            if slot not in running and waiting:
+                seed, said = waiting.pop(0), tempfile.TemporaryFile("w+")
+                running[slot] = seed, said, subprocess.Popen(
+                    [sys.executable, "-m", "benchmarks.peers", *argv, "--seed", str(seed),
+                     "--concurrent", "1"], env={**inherited, **slots[slot]}, stderr=said)
+        time.sleep(1)
+        for slot, (seed, said, child) in list(running.items()):
+            if child.poll() is not None:
+                del running[slot]
+                if child.returncode != 0:
+                    said.seek(0)
+                    failures.append(f"seed {seed}: " +
+                                    " | ".join(said.read().rstrip().splitlines()[-3:]))
+                said.close()
+    return failures
+
+
+def gather(directory: pathlib.Path, seeds: list[int], name: str, args, env_kwargs: dict) -> dict:
+    """`result.json` from the seeds' records: final returns, env steps, wall-clocks, settings."""
+    records = [json.loads((directory / f"seed{seed}.json").read_text()) for seed in seeds]
+    result = {"task": args.task, "config": name, "algo": name, "steps": args.steps,
+              "seeds": seeds, "env_steps": [r["env_steps"] for r in records],
+              "final": {"policy": [r["final"] for r in records]},
+              "wall_s": sum(r["wall_s"] for r in records),
+              "wall_s_per_seed": [r["wall_s"] for r in records],
+              "concurrent": args.concurrent, "device": records[-1]["device"],
+              "settings": {**SETTINGS[args.algo], "normalize_observations":
+                           not args.no_normalize, "env": env_kwargs}}
+    rundir.write_atomic(directory / "result.json", json.dumps(result, indent=1).encode())
+    return result
+
+
 def main(argv=None):
+    argv = sys.argv[1:] if argv is None else list(argv)
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--algo", choices=sorted(SETTINGS), default="sac")
     parser.add_argument("--task", default="halfcheetah")
     parser.add_argument("--steps", type=int, default=1_000_000)
-    parser.add_argument("--seeds", type=int, default=5, help="seeds 1..SEEDS, one at a time")
+    parser.add_argument("--seeds", type=int, default=5, help="seeds 1..SEEDS")
+    parser.add_argument("--seed", type=int, help="this seed alone (its curve and record; no "
+                        "result.json)")
+    parser.add_argument("--concurrent", type=int, default=1,
+                        help="seeds at a time, each in a process of its own")
     parser.add_argument("--eval-every", type=int, default=10_000,
                         help="env steps between evaluations (rounded up to a multiple of the "
                              "algorithm's training step)")
@@ -117,27 +185,30 @@ def main(argv=None):
         env_kwargs = env_assignments(args.env)
     except UsageError as e:
         parser.error(str(e))
+    for option in ("seeds", "seed", "concurrent"):
+        if getattr(args, option) is not None and getattr(args, option) < 1:
+            parser.error(f"--{option} must be a positive integer")
     name = f"brax_{args.algo}"
     directory = args.out / "figure4" / args.task / name
     directory.mkdir(parents=True, exist_ok=True)
-    finals, walls = [], []
-    for seed in range(1, args.seeds + 1):
-        rows, wall = train_seed(args.algo, args.task, args.steps, seed, args.eval_every,
-                                not args.no_normalize, env_kwargs)
-        rundir.write_csv(directory / f"seed{seed}.csv", ["", "Step", "Mean", "Std"],
-                         [[i, *row] for i, row in enumerate(rows)])
-        finals.append(rows[-1][1])
-        walls.append(wall)
-    result = {"task": args.task, "config": name, "algo": name, "steps": args.steps,
-              "seeds": list(range(1, args.seeds + 1)),
-              "env_steps": [int(rows[-1][0])] * args.seeds,
-              "final": {"policy": finals}, "wall_s": sum(walls), "wall_s_per_seed": walls,
-              "device": f"1 × {jax.devices()[0].device_kind}",
-              "settings": {**SETTINGS[args.algo], "normalize_observations":
-                           not args.no_normalize, "env": env_kwargs}}
-    rundir.write_atomic(directory / "result.json", json.dumps(result, indent=1).encode())
-    print(json.dumps({k: v for k, v in result.items() if k != "settings"}))
+    seeds = [args.seed] if args.seed is not None else list(range(1, args.seeds + 1))
+    to_run = [seed for seed in seeds if not (directory / f"seed{seed}.json").exists()]
+    if args.concurrent > 1 and len(to_run) > 1:
+        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # the seeds' memory
+        failures = run_concurrently(argv, to_run, args.concurrent)
+        if failures:
+            print(f"error: {len(failures)} seed(s) failed: " + "; ".join(failures),
+                  file=sys.stderr)
+            return 1
+    else:
+        for seed in to_run:
+            run_seed(args.algo, args.task, args.steps, seed, args.eval_every,
+                     not args.no_normalize, env_kwargs, directory)
+    if args.seed is None:
+        result = gather(directory, seeds, name, args, env_kwargs)
+        print(json.dumps({k: v for k, v in result.items() if k != "settings"}))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -2,6 +2,12 @@
 states, their schedules, and their runs through the training command (the point mass and a
 MuJoCo task)."""
 
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -210,3 +216,30 @@ def test_the_peers_evaluate_on_their_training_steps_within_the_budget():
         assert spacing % env_steps_per_update(algo) == 0 and 10_000 <= spacing < 20_000
         assert (num_evals - 1) * spacing <= 1_000_000 < num_evals * spacing
     assert evaluations("ppo", 1_000_000, 10_000) == (62, 16_384)
+
+
+def test_the_peers_run_seeds_side_by_side_as_each_alone_and_skip_the_done_ones(tmp_path):
+    """`benchmarks.peers --concurrent 2`: each seed in a process of its own writes the curve it
+    writes alone; a seed with its record is not run again; result.json gathers the records."""
+    command = [sys.executable, "-m", "benchmarks.peers", "--algo", "ppo", "--task", "point",
+               "--steps", "16384", "--eval-every", "8192", "--out", str(tmp_path)]
+    root = pathlib.Path(__file__).parents[1]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    side = subprocess.run(command + ["--seeds", "2", "--concurrent", "2"], cwd=root, env=env,
+                          capture_output=True, text=True)
+    assert side.returncode == 0, side.stderr
+    cell = tmp_path / "figure4" / "point" / "brax_ppo"
+    together = {k: (cell / f"seed{k}.csv").read_text() for k in (1, 2)}
+    result = json.loads((cell / "result.json").read_text())
+    records = [json.loads((cell / f"seed{k}.json").read_text()) for k in (1, 2)]
+    assert result["seeds"] == [1, 2] and result["env_steps"] == [16384, 16384]
+    assert result["final"]["policy"] == [r["final"] for r in records]
+    assert [float(together[k].splitlines()[-1].split(",")[2]) for k in (1, 2)] == \
+        result["final"]["policy"]
+
+    (cell / "seed2.json").unlink()
+    alone = subprocess.run(command + ["--seeds", "2"], cwd=root, env=env, capture_output=True,
+                           text=True)
+    assert alone.returncode == 0, alone.stderr
+    assert "seed 1:" not in alone.stdout and "seed 2: step 16,384" in alone.stdout
+    assert (cell / "seed2.csv").read_text() == together[2]
