@@ -54,6 +54,26 @@ def test_equations_without_a_rule_are_bound_as_traced():
     assert str(traced) == str(jax.make_jaxpr(_nested)(x))
 
 
+def test_the_rewritten_code_keeps_its_named_scopes():
+    """A profile of the rewritten physics still names MJX's stages: every equation, rewritten
+    or not, in a sub-jaxpr or not, lowers under the scopes it was traced in."""
+    def scoped(x):
+        with jax.named_scope("outer"):
+            y = jnp.exp(x)
+            with jax.named_scope("inner"):
+                return _nested(y) + jnp.sin(y)
+
+    def op_names(fn):
+        text = jax.jit(fn).lower(jnp.arange(3.0)).as_text(debug_info=True)
+        return set(re.findall(r'loc\("([^"]*)"', text))
+
+    traced, rewritten = op_names(scoped), op_names(rewrite(scoped, [SIN_TO_COS]))
+    assert any("outer/inner/" in name and name.endswith("sin") for name in traced)
+    assert any(name.endswith("outer/exp") for name in rewritten)
+    assert any("outer/inner/" in name and name.endswith("cos") for name in rewritten)
+    assert any("outer/inner/" in name and "while" in name for name in rewritten)
+
+
 def test_a_rule_that_fails_leaves_the_traced_code_and_warns_once_per_trace():
     """A rule whose computation raises (as when a primitive's parameters are renamed) falls
     back to the equation as traced, everywhere, with one warning that names the error."""

@@ -2,7 +2,8 @@
 
 `rewrite(fn, rules)` traces `fn` to a jaxpr and evaluates that jaxpr again, equation by
 equation, in the caller's trace (so under `vmap` the replacements are batched like the
-rest). An equation that a `Rule` applies to is computed by the rule; every other one is bound
+rest), each under its own source and named scopes (`jax.named_scope`), so that a profile
+still names MJX's stages. An equation that a `Rule` applies to is computed by the rule; every other one is bound
 as traced. Rules reach into the closed sub-jaxprs of loops, conditionals and jitted calls
 that hold an equation they apply to; the others are left as they are.
 
@@ -17,7 +18,7 @@ from typing import Callable, Sequence
 import warnings
 
 import jax
-from jax.extend import core
+from jax.extend import core, source_info_util
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,7 +118,9 @@ def _evaluate(jaxpr: core.Jaxpr, consts, args, applied: _Applied) -> list:
     for eqn in jaxpr.eqns:
         inputs = [read(v) for v in eqn.invars]
         rule = _rule_for(eqn, applied.rules)
-        with eqn.ctx.manager:
+        name_stack = source_info_util.current_name_stack() + eqn.source_info.name_stack
+        with source_info_util.user_context(eqn.source_info.traceback, name_stack=name_stack), \
+                eqn.ctx.manager:
             if rule is None or rule.name in applied.failed:
                 outputs = _bind(eqn, inputs, {k: _rewrite_param(v, applied)
                                               for k, v in eqn.params.items()})
