@@ -27,7 +27,7 @@ import json
 import os
 import re
 import tempfile
-from typing import Optional
+from typing import Any, Callable, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -49,8 +49,6 @@ _CALLED = re.compile(r"(?:calls|body|condition|to_apply|branch_computations|true
                      r"false_computation)=\{?((?:%?[\w.\-]+(?:, )?)+)\}?")
 _CONTAINER = re.compile(r" = .*?\s(?:while|conditional|call)\(")
 """Instructions whose time is that of the operations they run (not counted twice)."""
-_PHASE = {p: re.compile(rf"(^|[/(]){p}([)/]|$)") for p in PHASES}
-"""A phase's scope in an op_name path, also as vmap(<scope>) in a vmapped program."""
 _EVENTS = 1 << 26
 """Device events a GPU profile keeps (XLA's default, 2M, holds two halfcheetah generations
 with almost none to spare)."""
@@ -61,13 +59,22 @@ def _key(name: str) -> str:
     return re.sub(r"[.\-]", "_", name)
 
 
-def phases_of(hlo_text: str) -> dict[str, Optional[str]]:
+def _innermost(op_name: str, patterns: dict[str, re.Pattern]) -> Optional[str]:
+    """The scope of `patterns` that starts last in the op_name path (the innermost), if any."""
+    found = [(m.start(), scope) for scope, pattern in patterns.items()
+             for m in pattern.finditer(op_name)]
+    return max(found)[1] if found else None
+
+
+def phases_of(hlo_text: str, scopes: Sequence[str] = PHASES) -> dict[str, Optional[str]]:
     """The phase of every HLO instruction of a compiled program (by its name's `_key`); None
     for a loop, conditional or call, whose time is that of the instructions it runs.
 
-    An instruction's phase is the scope in its op_name; one without (a fusion or copy that a
-    compiler pass made) takes the phase of the instructions it calls, else that of the
-    instruction calling the computation it lies in (a loop's body: the loop's)."""
+    An instruction's phase is the innermost of `scopes` in its op_name path (also as
+    vmap(<scope>) in a vmapped program); one without (a fusion or copy that a compiler pass
+    made) takes the phase of the instructions it calls, else that of the instruction calling
+    the computation it lies in (a loop's body: the loop's)."""
+    patterns = {p: re.compile(rf"(^|[/(]){p}([)/]|$)") for p in scopes}
     named, called, enclosing, callers, inner, containers = {}, {}, {}, {}, {}, set()
     computation = None
     for line in hlo_text.splitlines():
@@ -80,8 +87,7 @@ def phases_of(hlo_text: str) -> dict[str, Optional[str]]:
             continue
         name = match.group(1)
         op_name = _OP_NAME.search(line)
-        named[name] = next((p for p, scope in _PHASE.items()
-                            if op_name and scope.search(op_name.group(1))), None)
+        named[name] = _innermost(op_name.group(1), patterns) if op_name else None
         enclosing[name] = computation
         if _CONTAINER.search(line):
             containers.add(name)
@@ -136,17 +142,29 @@ def counted_events(trace_file: str, phases: dict[str, Optional[str]], platform: 
 
 
 def split(trace_file: str, phases: dict[str, Optional[str]], generations: int,
-          platform: str) -> tuple[dict[str, float], dict[str, float]]:
-    """Device milliseconds per generation of each phase (`counted_events`), and of the
-    operations counted as `other`, the longest first."""
+          platform: str, scopes: Sequence[str] = PHASES
+          ) -> tuple[dict[str, float], dict[str, float]]:
+    """Device milliseconds per generation of each phase of `scopes` (`counted_events`), and of
+    the operations counted as `other`, the longest first."""
     totals, unattributed = collections.Counter(), collections.Counter()
     for event, name, phase in counted_events(trace_file, phases, platform):
         totals[phase] += event["dur"]
         if phase == "other":
             unattributed[name] += event["dur"]
     per_generation = 1e3 * generations
-    return ({p: totals[p] / per_generation for p in (*PHASES, "other")},
+    return ({p: totals[p] / per_generation for p in (*scopes, "other")},
             {n: t / per_generation for n, t in unattributed.most_common(10)})
+
+
+def trace_of(run: Callable[[], Any], log_dir: str) -> str:
+    """Runs `run` (to the end of its outputs' computation) under JAX's profiler, keeping up to
+    `_EVENTS` device events; returns the path of its Perfetto trace in `log_dir`."""
+    options = jax.profiler.ProfileOptions()
+    options.advanced_configuration = {"gpu_max_activity_api_events": _EVENTS,
+                                      "gpu_max_callback_api_events": _EVENTS}
+    with jax.profiler.trace(log_dir, create_perfetto_trace=True, profiler_options=options):
+        jax.block_until_ready(run())
+    return glob.glob(os.path.join(log_dir, "**", "perfetto_trace.json.gz"), recursive=True)[0]
 
 
 def model_split(task: str, cell, generations: int, smoke: bool) -> dict:
@@ -160,17 +178,9 @@ def model_split(task: str, cell, generations: int, smoke: bool) -> dict:
     step = jax.jit(agent.generation_step)
     compiled = step.lower(state).compile()
     jax.block_until_ready(compiled(state))
-    options = jax.profiler.ProfileOptions()
-    options.advanced_configuration = {"gpu_max_activity_api_events": _EVENTS,
-                                      "gpu_max_callback_api_events": _EVENTS}
     with tempfile.TemporaryDirectory() as log_dir:
-        with jax.profiler.trace(log_dir, create_perfetto_trace=True, profiler_options=options):
-            for _ in range(generations):
-                out = compiled(state)
-            jax.block_until_ready(out)
-        trace = glob.glob(os.path.join(log_dir, "**", "perfetto_trace.json.gz"),
-                          recursive=True)
-        ms, unattributed = split(trace[0], phases_of(compiled.as_text()), generations,
+        trace = trace_of(lambda: [compiled(state) for _ in range(generations)], log_dir)
+        ms, unattributed = split(trace, phases_of(compiled.as_text()), generations,
                                  default_platform())
     return {"model": cell.config, "ms_per_generation": ms, "total_ms": sum(ms.values()),
             "unattributed_ms": unattributed}

@@ -8,6 +8,7 @@ import os
 import jax
 import jax.numpy as jnp
 
+from benchmarks import physics_profile
 from benchmarks.time_split import counted_events, phases_of, split
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
 from pgps_jax.agent.pgps import PGPS, PHASES
@@ -48,3 +49,31 @@ def test_a_profile_s_time_goes_to_the_scopes_of_its_operations_once(tmp_path):
                    for e, _, _ in counted_events(trace, phases, "cpu"))
     for (tid, _, end), (next_tid, start, _) in zip(spans, spans[1:]):
         assert tid != next_tid or start >= end  # none counted inside another
+
+
+def test_nested_scopes_count_for_the_innermost():
+    def work(x):
+        with jax.named_scope("outer"):
+            y = jnp.exp(x)
+            with jax.named_scope("inner"):
+                return jnp.sin(y) * 2.0
+
+    text = jax.jit(work).lower(jnp.ones(3)).compile().as_text()
+    assert {"outer", "inner"} <= set(phases_of(text, ("outer", "inner")).values())
+    assert "inner" not in phases_of(text, ("outer",)).values()
+
+
+def test_the_physics_profile_names_each_stage_of_a_mujoco_step():
+    """`benchmarks.physics_profile` on hopper (contacts, Newton solver): every stage it scopes
+    runs kernels, and they are all the env step's kernels; MJX's own functions are left as
+    they were."""
+    originals = {name: getattr(module, name)
+                 for name, module in physics_profile.SCOPED_HERE.items()}
+    profile = physics_profile.profile_task("hopper", batch=2, steps=2, calls=1)
+    stages = profile["stages"]
+    for stage in ("kinematics", "crb", "collision", "make_constraint", "fwd_velocity", "solve",
+                  "euler"):
+        assert stages[stage]["kernels"] > 0 and stages[stage]["device_ms"] > 0, stage
+    assert sum(s["kernels"] for s in stages.values()) == profile["kernels_per_env_step"]
+    assert {name: getattr(module, name)
+            for name, module in physics_profile.SCOPED_HERE.items()} == originals
