@@ -1,7 +1,7 @@
 """Where an env step's device time goes: the kernels of each stage of MJX's physics.
 
 For each task, `--steps` env steps of our env (`jax.vmap(env.step)` at batch `--batch`, uniform
-random actions, after 200 warm-up steps) run `--calls` times under JAX's profiler. Every
+random actions, after at least 200 warm-up steps) run `--calls` times under JAX's profiler. Every
 device operation is attributed to the innermost MJX stage whose named scope its HLO
 instruction carries: MJX's own scopes (`fwd_velocity`, `fwd_actuation`, `fwd_acceleration`,
 `solve`, the integrator's `euler` / `rungekutta4`) and, set here for the profile only, the
@@ -66,10 +66,11 @@ def profile_task(task: str, batch: int, steps: int, calls: int) -> dict:
     """One task's env step: per stage, kernels and device milliseconds; busy and wall ms."""
     env, key = make_env(task), jax.random.PRNGKey(0)
     state = jax.jit(jax.vmap(env.reset))(jax.random.split(key, batch))
-    state = jax.jit(env_rollout(env, batch, WARMUP))(state, key)
     with stage_scopes():
         compiled = jax.jit(env_rollout(env, batch, steps)).lower(state, key).compile()
-    jax.block_until_ready(compiled(state, key))
+    for i in range(-(-WARMUP // steps)):  # into contact
+        state = compiled(state, jax.random.fold_in(key, 1000 + i))
+    jax.block_until_ready(state)
     start = time.perf_counter()
     for i in range(calls):
         jax.block_until_ready(compiled(state, jax.random.fold_in(key, i)))
