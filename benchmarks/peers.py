@@ -109,40 +109,74 @@ def train_seed(algo: str, task: str, steps: int, seed: int, every: int,
 
 
 def run_seed(algo: str, task: str, steps: int, seed: int, every: int, normalize: bool,
-             env_kwargs: dict, directory: pathlib.Path) -> None:
-    """Trains one seed and writes its curve and its record (final return, wall-clock)."""
+             env_kwargs: dict, directory: pathlib.Path, concurrent: int) -> None:
+    """Trains one seed and writes its curve and its record (final return, wall-clock, the
+    settings it ran with)."""
     rows, wall = train_seed(algo, task, steps, seed, every, normalize, env_kwargs)
     rundir.write_csv(directory / f"seed{seed}.csv", ["", "Step", "Mean", "Std"],
                      [[i, *row] for i, row in enumerate(rows)])
     record = {"seed": seed, "env_steps": int(rows[-1][0]), "final": rows[-1][1], "wall_s": wall,
-              "device": f"1 × {jax.devices()[0].device_kind}"}
+              "device": f"1 × {jax.devices()[0].device_kind}", "concurrent": concurrent,
+              "run": run_settings(steps, every, normalize, env_kwargs)}
     rundir.write_atomic(directory / f"seed{seed}.json", json.dumps(record).encode())
+
+
+def run_settings(steps: int, every: int, normalize: bool, env_kwargs: dict) -> dict:
+    """What a seed's record must match for the seed to count as done by this command."""
+    return {"--steps": steps, "--eval-every": every, "--no-normalize": not normalize,
+            "--env": env_kwargs}
+
+
+def done_seeds(directory: pathlib.Path, seeds: list[int], settings: dict) -> list[int]:
+    """The seeds of `seeds` whose records exist; UsageError if one of them ran with other
+    settings (naming the option, what it ran with and what this command asks)."""
+    done = []
+    for seed in seeds:
+        path = directory / f"seed{seed}.json"
+        if not path.exists():
+            continue
+        ran = json.loads(path.read_text()).get("run", {})
+        for option, value in settings.items():
+            if ran.get(option) != value:
+                raise UsageError(f"seed {seed} in {directory} ran with {option} "
+                                 f"{ran.get(option)!r}, this command asks {value!r}: pass the "
+                                 f"same {option}, or another --out")
+        done.append(seed)
+    return done
 
 
 def run_concurrently(argv: list[str], seeds: list[int], concurrent: int) -> list[str]:
     """Runs each of `seeds` as this command with `--seed k`, `concurrent` at a time in processes
-    of their own; returns what the failed ones said (their last lines of stderr)."""
+    of their own; returns what the failed ones said (their last lines of stderr). The children
+    end with this command, however it ends."""
     slots = placements(min(concurrent, len(seeds)), jax.default_backend(),
                        jax.local_device_count(), os.environ.get("CUDA_VISIBLE_DEVICES"))
     inherited = {k: v for k, v in os.environ.items()
                  if k not in ("XLA_PYTHON_CLIENT_MEM_FRACTION", "XLA_PYTHON_CLIENT_PREALLOCATE")}
     waiting, running, failures = list(seeds), {}, []
-    while waiting or running:
-        for slot in range(len(slots)):
-            if slot not in running and waiting:
-                seed, said = waiting.pop(0), tempfile.TemporaryFile("w+")
-                running[slot] = seed, said, subprocess.Popen(
-                    [sys.executable, "-m", "benchmarks.peers", *argv, "--seed", str(seed),
-                     "--concurrent", "1"], env={**inherited, **slots[slot]}, stderr=said)
-        time.sleep(1)
-        for slot, (seed, said, child) in list(running.items()):
-            if child.poll() is not None:
-                del running[slot]
-                if child.returncode != 0:
-                    said.seek(0)
-                    failures.append(f"seed {seed}: " +
-                                    " | ".join(said.read().rstrip().splitlines()[-3:]))
-                said.close()
+    try:
+        while waiting or running:
+            for slot in range(len(slots)):
+                if slot not in running and waiting:
+                    seed, said = waiting.pop(0), tempfile.TemporaryFile()
+                    running[slot] = seed, said, subprocess.Popen(
+                        [sys.executable, "-m", "benchmarks.peers", *argv, "--seed", str(seed),
+                         "--concurrent", str(concurrent)], env={**inherited, **slots[slot]},
+                        stderr=said, start_new_session=True)
+            time.sleep(1)
+            for slot, (seed, said, child) in list(running.items()):
+                if child.poll() is not None:
+                    del running[slot]
+                    if child.returncode != 0:
+                        said.seek(0)
+                        lines = said.read().decode(errors="replace").rstrip().splitlines()
+                        failures.append(f"seed {seed}: " + " | ".join(lines[-3:]))
+                    said.close()
+    finally:
+        for seed, said, child in running.values():
+            child.terminate()
+            child.wait()
+            said.close()
     return failures
 
 
@@ -152,9 +186,10 @@ def gather(directory: pathlib.Path, seeds: list[int], name: str, args, env_kwarg
     result = {"task": args.task, "config": name, "algo": name, "steps": args.steps,
               "seeds": seeds, "env_steps": [r["env_steps"] for r in records],
               "final": {"policy": [r["final"] for r in records]},
-              "wall_s": sum(r["wall_s"] for r in records),
+              "wall_s": sum(r["wall_s"] for r in records),  # of the seeds, one after another
               "wall_s_per_seed": [r["wall_s"] for r in records],
-              "concurrent": args.concurrent, "device": records[-1]["device"],
+              "concurrent": [r["concurrent"] for r in records],
+              "device": sorted({r["device"] for r in records}),
               "settings": {**SETTINGS[args.algo], "normalize_observations":
                            not args.no_normalize, "env": env_kwargs}}
     rundir.write_atomic(directory / "result.json", json.dumps(result, indent=1).encode())
@@ -192,9 +227,15 @@ def main(argv=None):
     directory = args.out / "figure4" / args.task / name
     directory.mkdir(parents=True, exist_ok=True)
     seeds = [args.seed] if args.seed is not None else list(range(1, args.seeds + 1))
-    to_run = [seed for seed in seeds if not (directory / f"seed{seed}.json").exists()]
+    settings = run_settings(args.steps, args.eval_every, not args.no_normalize, env_kwargs)
+    try:
+        done = done_seeds(directory, seeds, settings)
+    except UsageError as e:
+        parser.error(str(e))
+    to_run = [seed for seed in seeds if seed not in done]
     if args.concurrent > 1 and len(to_run) > 1:
-        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")  # the seeds' memory
+        # this process only asks which devices there are: it leaves their memory to the seeds
+        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
         failures = run_concurrently(argv, to_run, args.concurrent)
         if failures:
             print(f"error: {len(failures)} seed(s) failed: " + "; ".join(failures),
@@ -203,7 +244,7 @@ def main(argv=None):
     else:
         for seed in to_run:
             run_seed(args.algo, args.task, args.steps, seed, args.eval_every,
-                     not args.no_normalize, env_kwargs, directory)
+                     not args.no_normalize, env_kwargs, directory, args.concurrent)
     if args.seed is None:
         result = gather(directory, seeds, name, args, env_kwargs)
         print(json.dumps({k: v for k, v in result.items() if k != "settings"}))

@@ -21,6 +21,7 @@ import collections
 import contextlib
 import dataclasses
 import json
+import pathlib
 import tempfile
 import time
 from typing import Iterator
@@ -31,6 +32,7 @@ from mujoco.mjx._src import collision_driver, constraint, smooth
 from benchmarks.env_latency import env_rollout
 from benchmarks.time_split import counted_events, phases_of, trace_of
 from benchmarks.timing import provenance
+from pgps_jax.cli.run_dir import write_atomic
 from pgps_jax.envs import TASKS, make_env
 from pgps_jax.envs.physics import default_platform
 
@@ -105,14 +107,18 @@ def main(argv=None):
     parser.add_argument("--out", default="benchmarks/results/physics_profile.json")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args(argv)
+    for option in ("batch", "steps", "calls"):
+        if getattr(args, option) < 1:
+            parser.error(f"--{option} must be a positive integer, not {getattr(args, option)}")
     if args.smoke:
         args.batch, args.steps, args.calls = 2, 2, 1
+    pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     result = {**provenance(), "tasks": []}
     for task in args.tasks:
         result["tasks"].append(profile_task(task, args.batch, args.steps, args.calls))
         print(json.dumps(result["tasks"][-1]), flush=True)
-        with open(args.out, "w") as f:  # after every task: a cut-off run keeps its part
-            json.dump(result, f, indent=1)
+        # after every task: a cut-off run keeps its part
+        write_atomic(pathlib.Path(args.out), json.dumps(result, indent=1).encode())
 
 
 if __name__ == "__main__":

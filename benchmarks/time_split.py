@@ -142,9 +142,8 @@ def counted_events(trace_file: str, phases: dict[str, Optional[str]], platform: 
 
 
 def split(trace_file: str, phases: dict[str, Optional[str]], generations: int,
-          platform: str, scopes: Sequence[str] = PHASES
-          ) -> tuple[dict[str, float], dict[str, float]]:
-    """Device milliseconds per generation of each phase of `scopes` (`counted_events`), and of
+          platform: str) -> tuple[dict[str, float], dict[str, float]]:
+    """Device milliseconds per generation of each of `PHASES` (`counted_events`), and of
     the operations counted as `other`, the longest first."""
     totals, unattributed = collections.Counter(), collections.Counter()
     for event, name, phase in counted_events(trace_file, phases, platform):
@@ -152,7 +151,7 @@ def split(trace_file: str, phases: dict[str, Optional[str]], generations: int,
         if phase == "other":
             unattributed[name] += event["dur"]
     per_generation = 1e3 * generations
-    return ({p: totals[p] / per_generation for p in (*scopes, "other")},
+    return ({p: totals[p] / per_generation for p in (*PHASES, "other")},
             {n: t / per_generation for n, t in unattributed.most_common(10)})
 
 

@@ -243,3 +243,24 @@ def test_the_peers_run_seeds_side_by_side_as_each_alone_and_skip_the_done_ones(t
     assert alone.returncode == 0, alone.stderr
     assert "seed 1:" not in alone.stdout and "seed 2: step 16,384" in alone.stdout
     assert (cell / "seed2.csv").read_text() == together[2]
+
+    other = subprocess.run(command[:-2] + ["--steps", "8192", "--out", str(tmp_path),
+                                           "--seeds", "2"], cwd=root, env=env,
+                           capture_output=True, text=True)
+    assert other.returncode == 2 and "seed 1" in other.stderr
+    assert "--steps 16384" in other.stderr and "asks 8192" in other.stderr
+
+
+def test_the_peers_name_each_seed_that_failed_in_its_own_process(tmp_path):
+    """A seed whose process fails makes the command fail, naming the seed and its error, and
+    leaves no result.json."""
+    failed = subprocess.run(
+        [sys.executable, "-m", "benchmarks.peers", "--algo", "ppo", "--task", "no_such_task",
+         "--steps", "8192", "--seeds", "2", "--concurrent", "2", "--out", str(tmp_path)],
+        cwd=pathlib.Path(__file__).parents[1], env={**os.environ, "JAX_PLATFORMS": "cpu"},
+        capture_output=True, text=True)
+    assert failed.returncode == 1
+    assert "2 seed(s) failed" in failed.stderr
+    assert "seed 1:" in failed.stderr and "seed 2:" in failed.stderr
+    assert "no_such_task" in failed.stderr
+    assert not (tmp_path / "figure4" / "no_such_task" / "brax_ppo" / "result.json").exists()
