@@ -7,6 +7,12 @@ about as well on our env as on Gym's when the two agree on observation, action, 
 physics; a gait tuned to Gym's physics that falls or jumps out of the healthy range here
 points at a difference in the physics.
 
+`--engine c` plays the same episodes (start states from the same keys, the same observation,
+reward and termination) in MuJoCo's C engine (`mujoco.mj_step`) on the env's model and
+settings, where the solver stops at its tolerance: with `--env iterations=100
+ls_iterations=50 euler_damping=true` that is the model's physics solved to convergence, the
+reference that a truncated MJX solve is measured against.
+
 Gym's Ant-v2 observation has 84 more entries than ours (`cfrc_ext`, zero under mujoco-py 2.0,
 openai/gym#1541); the weights that read them are dropped. Each record of `--out` (a JSON list,
 appended to) holds, per task, the returns and lengths of `--episodes` deterministic episodes
@@ -16,6 +22,8 @@ of 1000 steps from PRNGKey(0)'s start states.
     python -m benchmarks.authors_actors --models PGPS/learned_models
     python -m benchmarks.authors_actors --models PGPS/learned_models --tasks ant \\
         --env integrator=euler iterations=1 floor_contacts=model start_pose=init_qpos
+    python -m benchmarks.authors_actors --models PGPS/learned_models --engine c \\
+        --env iterations=100 ls_iterations=50 euler_damping=true
 """
 
 import argparse
@@ -25,6 +33,7 @@ import pathlib
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from benchmarks.timing import provenance
@@ -67,18 +76,47 @@ def act(params: dict, obs: jax.Array) -> jax.Array:
     return jnp.tanh(w_out @ obs + b_out)
 
 
-def play(task: str, models: pathlib.Path, episodes: int, env_kwargs: dict) -> dict:
+def play(task: str, models: pathlib.Path, episodes: int, env_kwargs: dict,
+         engine: str = "mjx", steps: int = EPISODE_STEPS) -> dict:
+    """`episodes` deterministic episodes of up to `steps` env steps of the authors' actor for
+    `task`, from PRNGKey(0)'s start states, stepped by MJX or by MuJoCo's C engine."""
     env = make_env(task, **env_kwargs)
     params = load_actor(models / f"{GYM_NAMES[task]}.npy", env.observation_size,
                         env.action_size)
-    batch = jax.tree.map(lambda x: jnp.broadcast_to(x, (episodes, *x.shape)), params)
     keys = jax.random.split(jax.random.PRNGKey(0), episodes)
-    limits = jnp.full((episodes,), EPISODE_STEPS, jnp.int32)
-    out = jax.jit(lambda p, k: run_episodes(env, act, p, k, limits, EPISODE_STEPS,
-                                            record=False))(batch, keys)
-    returns = np.asarray(out.returns)
-    return {"returns": np.round(returns, 1).tolist(), "lengths": np.asarray(out.lengths).tolist(),
+    if engine == "c":
+        returns, lengths = np.array([play_in_c(env, params, key, steps) for key in keys]).T
+    else:
+        batch = jax.tree.map(lambda x: jnp.broadcast_to(x, (episodes, *x.shape)), params)
+        limits = jnp.full((episodes,), steps, jnp.int32)
+        out = jax.jit(lambda p, k: run_episodes(env, act, p, k, limits, steps,
+                                                record=False))(batch, keys)
+        returns, lengths = np.asarray(out.returns), np.asarray(out.lengths)
+    return {"returns": np.round(returns, 1).tolist(), "lengths": lengths.astype(int).tolist(),
             "mean": float(returns.mean()), "std": float(returns.std())}
+
+
+def play_in_c(env, params: dict, key: jax.Array, steps: int) -> tuple[float, int]:
+    """One episode's return and length (up to `steps`) with the env's model stepped by
+    `mujoco.mj_step` (`n_frames` steps per env step), from the env's reset state for `key`."""
+    model = env.mj_model
+    data = mujoco.MjData(model)
+    start = env.reset(key).pipeline_state
+    data.qpos[:], data.qvel[:] = np.asarray(start.qpos), np.asarray(start.qvel)
+    policy = jax.jit(lambda obs: act(params, obs))
+    observe, healthy = jax.jit(env.observation), jax.jit(env.is_healthy)
+    reward = jax.jit(lambda q0, q1, a: env.reward(env.reward_terms(q0, q1, a)))
+    total = 0.0
+    for step in range(1, steps + 1):
+        action = np.clip(np.asarray(policy(observe(data.qpos, data.qvel))), -1.0, 1.0)
+        qpos0 = data.qpos.copy()
+        data.ctrl[:] = action
+        for _ in range(env.n_frames):
+            mujoco.mj_step(model, data)
+        total += float(reward(qpos0, data.qpos, action))
+        if not healthy(data.qpos, data.qvel):
+            break
+    return total, step
 
 
 def main():
@@ -89,17 +127,20 @@ def main():
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
                         help="make_env keyword arguments for every task")
+    parser.add_argument("--engine", choices=("mjx", "c"), default="mjx",
+                        help="step the physics with MJX (the envs' own) or MuJoCo's C engine")
     parser.add_argument("--out", default="benchmarks/results/authors_actors.json")
     args = parser.parse_args()
     try:
         env_kwargs = env_assignments(args.env)
     except UsageError as e:
         parser.error(str(e))
-    record = {**provenance(), "env": env_kwargs, "episodes": args.episodes, "tasks": {}}
+    record = {**provenance(), "engine": args.engine, "env": env_kwargs,
+              "episodes": args.episodes, "tasks": {}}
     for task in args.tasks:
-        record["tasks"][task] = play(task, args.models, args.episodes, env_kwargs)
+        record["tasks"][task] = play(task, args.models, args.episodes, env_kwargs, args.engine)
         result = record["tasks"][task]
-        print(f"{task:12s} {env_kwargs or 'defaults'}: {result['mean']:8.0f} ± "
+        print(f"{task:12s} {args.engine} {env_kwargs or 'defaults'}: {result['mean']:8.0f} ± "
               f"{result['std']:5.0f}, lengths {min(result['lengths'])}–"
               f"{max(result['lengths'])}", flush=True)
     records = json.loads(open(args.out).read()) if os.path.exists(args.out) else []

@@ -7,7 +7,8 @@ same model and settings from the same warmed-up physics state: `n_frames` calls 
 Brax's own env (`brax.envs.get_environment(task, backend="mjx")`) as shipped and with our
 solver settings, started from our warmed-up positions and velocities (Brax's swimmer refuses
 the MJX backend). Also at batch 60, one variant of our env (`--alternative`: by default
-Newton with 2 iterations, the more accurate, slower settings of BENCHMARKS.md). Every
+Newton with 2 iterations, one more than hopper's and swimmer's and one fewer than the other
+tasks'). Every
 function is compiled before any is timed; a figure is the median of 5 timed calls of 100
 steps (Brax's env: 2 calls of 20 steps, it is slow).
 

@@ -5,6 +5,7 @@ command line's errors."""
 import dataclasses
 import json
 import os
+import pathlib
 import subprocess
 import sys
 
@@ -12,9 +13,10 @@ import jax
 import numpy as np
 import pytest
 
-from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
+from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, for_task
 from pgps_jax.cli.assignments import assignments, env_assignments, field_types
 from pgps_jax.cli.errors import RunFailed, UsageError
+from pgps_jax.envs import make_env
 from pgps_jax.experiments.paper import command, grid, runner, side_by_side
 
 from train_cli import REPO, cli_env, read_csv, run_here
@@ -157,8 +159,26 @@ def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
         command.run("figure4", out, contacts, tasks=["hopper"], configs=["pgps"],
                     progress=False)
     result = json.loads((out / "figure4" / "hopper" / "pgps" / runner.RESULT).read_text())
+    assert result["settings"]["physics"] == {
+        "start_pose": "qpos0", "integrator": "euler", "solver": "newton", "iterations": 1,
+        "ls_iterations": 4, "euler_damping": False, "floor_contacts": "model"}
     before_env = {k: v for k, v in result["settings"].items() if k != "env"}
-    runner._require_same(out, before_env, result["settings"])  # a cell from before --env
+    runner._require_same(out, before_env, result["settings"], "hopper")  # from before --env
+
+
+def test_a_cell_from_before_the_physics_was_recorded_ran_on_the_physics_of_then():
+    """A result without `physics` counts as run on the task's physics of that time: hopper's
+    is today's, walker2d's and halfcheetah's solved with one Newton iteration (not three)."""
+    def settings(task):
+        return runner._settings("pgps", for_task(task), BUDGET, 1, make_env(task))
+    for task in ("hopper", "walker2d", "halfcheetah"):
+        now = settings(task)
+        before = {k: v for k, v in now.items() if k != "physics"}
+        if task == "hopper":
+            runner._require_same(pathlib.Path("cell"), before, now, task)
+        else:
+            with pytest.raises(UsageError, match="'iterations': 1.*'iterations': 3"):
+                runner._require_same(pathlib.Path("cell"), before, now, task)
 
 
 def test_set_reads_values_as_the_training_command_line_does():

@@ -11,8 +11,10 @@ Brax's model drops the `ref` of the rootz joint, so the torso height is z = 1.25
   (qpos[2:], qvel) lies in (−100, 100).
 - dt: 0.002 s timestep × frame_skip 4 = 0.008 s.
 - Reset: qpos0 + U(±5e-3), qvel = U(±5e-3).
-- Physics: Newton, 1 iteration, 4 line-search iterations, Euler damping off. Mean return
-  against the model's own settings: random actions +3%, sinusoids +7% (BENCHMARKS.md).
+- Physics: Newton, 1 iteration, 4 line-search iterations, Euler damping off. It carries
+  the PGPS authors' trained hopper (3,731, every episode 1,000 steps; the model's converged
+  solve 3,510) and moves random actions and sinusoids within 3% and 7% of the model's own
+  settings (BENCHMARKS.md).
 """
 
 import jax
@@ -38,7 +40,7 @@ class Hopper(MjxEnv):
     healthy_reward = 1.0
     reset_noise_scale = 5e-3
 
-    def _observation(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
+    def observation(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
         z = _TORSO_Z0 + qpos[1:2]
         return jnp.concatenate([z, qpos[2:], jnp.clip(qvel, -10.0, 10.0)])
 

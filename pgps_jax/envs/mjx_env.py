@@ -52,12 +52,18 @@ class MjxEnv(Env):
         """`start_pose`: the pose that reset adds noise to, one of `START_POSES`;
         `physics_overrides`: fields of `Physics` replacing the task's defaults."""
         check_start_pose(start_pose)
+        self.start_pose = start_pose
         self.physics = dataclasses.replace(self.default_physics, **physics_overrides)
         self.mj_model, self.mjx_model = physics.load_model(self.xml, self.physics)
         pose = (physics.init_qpos(self.mj_model) if start_pose == "init_qpos"
                 else self.mj_model.qpos0)
         self._init_qpos = jnp.asarray(pose)
         self._data0 = mjx.make_data(self.mjx_model)
+
+    def settings(self) -> dict:
+        """What the simulated task depends on beyond its class: the start pose and the
+        physics settings (`Physics.model_settings`)."""
+        return {"start_pose": self.start_pose, **self.physics.model_settings()}
 
     @property
     def dt(self) -> float:
@@ -83,7 +89,7 @@ class MjxEnv(Env):
         metrics = {k: jnp.zeros((), jnp.float32) for k in METRICS}
         metrics["x_position"] = self._x_position(qpos)
         zero = jnp.zeros((), jnp.float32)
-        return State(pipeline_state=data, obs=self._observation(data.qpos, data.qvel),
+        return State(pipeline_state=data, obs=self.observation(data.qpos, data.qvel),
                      reward=zero, done=zero, metrics=metrics, info={})
 
     def step(self, state: State, action: jax.Array) -> State:
@@ -94,27 +100,36 @@ class MjxEnv(Env):
                                    self.physics.write_out_linalg,
                                    self.physics.unroll_line_search,
                                    self.physics.unroll_solver)
-        x0, x1 = self._x_position(data0.qpos), self._x_position(data.qpos)
-        x_velocity = (x1 - x0) / self.dt
-        forward = self.forward_reward_weight * x_velocity
-        ctrl = -self.ctrl_cost_weight * jnp.sum(jnp.square(action))
-        healthy = jnp.asarray(self.healthy_reward, jnp.float32)
-        obs = self._observation(data.qpos, data.qvel)
+        terms = self.reward_terms(data0.qpos, data.qpos, action)
+        obs = self.observation(data.qpos, data.qvel)
         new = state.replace(
-            pipeline_state=data, obs=obs, reward=forward + healthy + ctrl,
+            pipeline_state=data, obs=obs, reward=self.reward(terms),
             done=1.0 - self.is_healthy(data.qpos, data.qvel).astype(jnp.float32),
             metrics={**state.metrics,  # keep keys that Brax wrappers add
-                     **dict(x_position=x1, x_velocity=x_velocity, reward_forward=forward,
-                            reward_ctrl=ctrl, reward_healthy=healthy,
-                            unstable=jnp.zeros((), jnp.float32))})
+                     **terms, "unstable": jnp.zeros((), jnp.float32)})
         finite = nan_guard.all_finite(data.qpos, data.qvel, obs, new.reward)
         return nan_guard.guard(state, new, finite)
+
+    def reward_terms(self, qpos0: jax.Array, qpos1: jax.Array, action: jax.Array) -> dict:
+        """Gym v4's reward terms of a step from `qpos0` to `qpos1` under (clipped) `action`,
+        and the forward coordinate and velocity they come from."""
+        x0, x1 = self._x_position(qpos0), self._x_position(qpos1)
+        x_velocity = (x1 - x0) / self.dt
+        return dict(x_position=x1, x_velocity=x_velocity,
+                    reward_forward=self.forward_reward_weight * x_velocity,
+                    reward_ctrl=-self.ctrl_cost_weight * jnp.sum(jnp.square(action)),
+                    reward_healthy=jnp.asarray(self.healthy_reward, jnp.float32))
+
+    @staticmethod
+    def reward(terms: dict) -> jax.Array:
+        """forward + healthy + ctrl (the ctrl term negative)."""
+        return terms["reward_forward"] + terms["reward_healthy"] + terms["reward_ctrl"]
 
     def _x_position(self, qpos: jax.Array) -> jax.Array:
         """Forward coordinate whose rate is rewarded: qpos[0], the root joint's x (Gym v4)."""
         return qpos[0]
 
-    def _observation(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
+    def observation(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
         """The task's Gym v4 observation of the physics state."""
         raise NotImplementedError
 
@@ -124,7 +139,7 @@ class MjxEnv(Env):
 
     @property
     def observation_size(self) -> int:
-        return int(jax.eval_shape(self._observation, self._data0.qpos, self._data0.qvel).shape[-1])
+        return int(jax.eval_shape(self.observation, self._data0.qpos, self._data0.qvel).shape[-1])
 
     @property
     def action_size(self) -> int:

@@ -30,6 +30,11 @@ that Brax added), or Gym's: every body geom with a 0.01 m contact margin, the ad
 removed."""
 
 
+SPEED_ONLY = ("write_out_linalg", "unroll_line_search", "unroll_solver")
+"""The `Physics` fields that change how a physics step is computed, not what (its results
+stay equal to float tolerance)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Physics:
     """Constraint-solver settings of one task (MuJoCo `mjOption` fields)."""
@@ -56,6 +61,10 @@ class Physics:
     unroll_solver: Optional[bool] = None
     """The solver's iterations, when there are several, without a device loop
     (`mjx_rewrites`); None: on a GPU."""
+
+    def model_settings(self) -> dict:
+        """The fields that define the simulated physics (all but `SPEED_ONLY`)."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if k not in SPEED_ONLY}
 
     def __post_init__(self):
         if self.integrator not in _INTEGRATORS:

@@ -31,5 +31,5 @@ class Swimmer(MjxEnv):
     ctrl_cost_weight = 1e-4
     reset_noise_scale = 0.1
 
-    def _observation(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
+    def observation(self, qpos: jax.Array, qvel: jax.Array) -> jax.Array:
         return jnp.concatenate([qpos[2:], qvel])

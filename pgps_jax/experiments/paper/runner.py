@@ -47,6 +47,7 @@ from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.checkpoint import Checkpoints
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import make_env
+from pgps_jax.envs.mjx_env import MjxEnv
 from pgps_jax.experiments.paper.grid import Cell
 
 RESULT = "result.json"
@@ -108,15 +109,15 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     `on_generation(generation, env_steps [seeds])` is called after every generation."""
     config = for_task(cell.task, cell.algo, **dict(cell.overrides), **dict(budget.overrides))
     mesh = seed_mesh()
-    settings = _settings(cell.algo, config, budget, mesh.size)
+    env = make_env(cell.task, **dict(budget.env))
+    settings = _settings(cell.algo, config, budget, mesh.size, env)
     with rundir.writing(directory):
         directory.mkdir(parents=True, exist_ok=True)
     if (directory / RESULT).exists():
         result = json.loads((directory / RESULT).read_text())
-        _require_same(directory, result["settings"], settings, done=True)
+        _require_same(directory, result["settings"], settings, cell.task, done=True)
         return result
-    agent = make_agent(cell.algo, config, make_env(cell.task, **dict(budget.env)),
-                       budget.evaluation)
+    agent = make_agent(cell.algo, config, env, budget.evaluation)
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seeds"))
     batch = padded_seeds(budget.seeds, mesh.size)
     numbers = jnp.arange(1, batch + 1)
@@ -134,7 +135,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             populations = [[] for _ in range(batch)]
         else:
             meta = checkpoints.latest_meta()[1]
-            _require_same(directory, meta["settings"], settings)
+            _require_same(directory, meta["settings"], settings, cell.task)
             if not isinstance(meta["curves"], dict):
                 raise UsageError(f"{directory / 'checkpoints'} was written by an older runner "
                                  "(μ's curves only); remove it to run the cell again")
@@ -250,26 +251,34 @@ class AtBudget:
         return jax.device_put(current, sharding)
 
 
-def _settings(algo: str, config, budget: Budget, devices: int) -> dict:
-    """What a cell's results depend on (JSON values)."""
+def _settings(algo: str, config, budget: Budget, devices: int, env) -> dict:
+    """What a cell's results depend on (JSON values), the env's physics included (None for
+    an env without MJX physics, the point mass)."""
+    physics = env.settings() if isinstance(env, MjxEnv) else None
     return json.loads(json.dumps({
         "algo": algo, "config": dataclasses.asdict(config),
         "evaluation": dataclasses.asdict(budget.evaluation), "env": dict(budget.env),
-        "steps": budget.steps, "seeds": budget.seeds, "devices": devices}))
+        "physics": physics, "steps": budget.steps, "seeds": budget.seeds,
+        "devices": devices}))
 
 
 _ADDED_SETTINGS = {"env": {}, "algo": "pgps"}
 """Settings that cells started before they existed ran under."""
+_PHYSICS_BEFORE_RECORDED = {"halfcheetah": {"iterations": 1}, "walker2d": {"iterations": 1},
+                            "ant": {"iterations": 2}}
+"""Cells started before their physics was recorded ran on today's physics of their task
+but for these fields (the Newton iterations of halfcheetah, walker2d and ant then)."""
 _ADDED_CONFIG_FIELDS = ("elitism", "policy_delay", "exploration_noise")
 """PGPSConfig fields that cells started before they existed ran under at their defaults."""
 
 
-def _require_same(directory: pathlib.Path, saved: dict, now: dict, done: bool = False
-                  ) -> None:
-    """UsageError naming the settings in which the cell in `directory` differs from `now`
-    (for a `done` cell, the devices its seeds were split over do not count: a cell continued
-    from a checkpoint needs its batch, a result does not)."""
-    saved = {**_ADDED_SETTINGS, **saved}
+def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
+                  done: bool = False) -> None:
+    """UsageError naming the settings in which the cell of `task` in `directory` differs from
+    `now` (for a `done` cell, the devices its seeds were split over do not count: a cell
+    continued from a checkpoint needs its batch, a result does not)."""
+    physics = now["physics"] and {**now["physics"], **_PHYSICS_BEFORE_RECORDED.get(task, {})}
+    saved = {**_ADDED_SETTINGS, "physics": physics, **saved}
     ignored = {"config"} | ({"devices"} if done else set())
     differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now" for key in now
               if key not in ignored and saved.get(key) != now[key]]
