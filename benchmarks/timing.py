@@ -21,7 +21,13 @@ def timed(fn, *args, repeats=5):
 
 
 def provenance() -> dict:
-    """The device kind, JAX version and commit a measurement is taken with."""
+    """The device kind, JAX version and commit a measurement is taken with (the commit
+    followed by "+changes" where the package or the benchmarks differ from it)."""
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True).stdout.strip()
+    changed = subprocess.run(["git", "status", "--porcelain", "--", "pgps_jax", "benchmarks"],
+                             capture_output=True, text=True).stdout
+    if commit and any(not line[3:].startswith("benchmarks/results")
+                      for line in changed.splitlines()):
+        commit += "+changes"
     return {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit}

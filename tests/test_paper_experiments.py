@@ -171,14 +171,20 @@ def test_a_cell_from_before_the_physics_was_recorded_ran_on_the_physics_of_then(
     is today's, walker2d's and halfcheetah's solved with one Newton iteration (not three)."""
     def settings(task):
         return runner._settings("pgps", for_task(task), BUDGET, 1, make_env(task))
-    for task in ("hopper", "walker2d", "halfcheetah"):
+    for task in ("hopper", "walker2d", "halfcheetah", "ant"):
         now = settings(task)
         before = {k: v for k, v in now.items() if k != "physics"}
         if task == "hopper":
             runner._require_same(pathlib.Path("cell"), before, now, task)
         else:
-            with pytest.raises(UsageError, match="'iterations': 1.*'iterations': 3"):
+            then = 2 if task == "ant" else 1
+            with pytest.raises(UsageError, match=f"'iterations': {then}.*'iterations': 3"):
                 runner._require_same(pathlib.Path("cell"), before, now, task)
+    # one run then with `--env iterations=3` ran on today's physics
+    now = runner._settings("pgps", for_task("walker2d"), dataclasses.replace(
+        BUDGET, env=(("iterations", 3),)), 1, make_env("walker2d", iterations=3))
+    runner._require_same(pathlib.Path("cell"), {k: v for k, v in now.items() if k != "physics"},
+                         now, "walker2d")
 
 
 def test_set_reads_values_as_the_training_command_line_does():

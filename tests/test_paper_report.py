@@ -169,6 +169,22 @@ def test_a_run_is_labelled_with_what_it_changed_from_its_cell_s_configuration():
     assert report.run_label("brax_sac", {"final": {}}, None) == "ours: brax_sac"
 
 
+def test_a_run_on_an_earlier_physics_of_its_task_is_labelled_with_it():
+    """halfcheetah's cells from before the physics was recorded ran with one Newton
+    iteration; a cell that records today's physics shows none."""
+    import dataclasses
+    from pgps_jax.agent.config import for_task
+    from pgps_jax.envs import make_env
+    from pgps_jax.experiments.paper.grid import Cell
+    cell = Cell("halfcheetah", "pgps", {})
+    config = json.loads(json.dumps(dataclasses.asdict(for_task("halfcheetah"))))
+    before = {"settings": {"config": config, "env": {}}}
+    assert report.run_label("pgps", before, cell) == "ours: pgps (iterations=1)"
+    today = {"settings": {"config": config, "env": {},
+                          "physics": make_env("halfcheetah").settings()}}
+    assert report.run_label("pgps", today, cell) == "ours: pgps"
+
+
 def test_table1_normalises_each_task_by_the_base_model_s_better_actor():
     def result(mu, td3, wall):
         return {"final": {"mu": mu, "td3": td3}, "wall_s": wall}

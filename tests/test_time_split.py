@@ -65,8 +65,9 @@ def test_nested_scopes_count_for_the_innermost():
 
 def test_the_physics_profile_names_each_stage_of_a_mujoco_step():
     """`benchmarks.physics_profile` on hopper (contacts, Newton solver): every stage it scopes
-    runs kernels, and they are all the env step's kernels; MJX's own functions are left as
-    they were."""
+    runs kernels, and together they run most of the env step's (the rest: the env's own
+    observation, reward and guard, and the loops' bookkeeping); MJX's own functions are left
+    as they were."""
     originals = {name: getattr(module, name)
                  for name, module in physics_profile.SCOPED_HERE.items()}
     profile = physics_profile.profile_task("hopper", batch=2, steps=2, calls=1)

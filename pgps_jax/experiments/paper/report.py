@@ -28,7 +28,8 @@ from pgps_jax.agent.config import for_task
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.experiments.paper.grid import Cell, cells
-from pgps_jax.experiments.paper.runner import seed_file
+from pgps_jax.envs import make_env
+from pgps_jax.experiments.paper.runner import physics_of, seed_file
 
 REFERENCE = pathlib.Path("benchmarks/reference/pgps_curves")
 """The authors' published curves: `<task>/<seed>.csv`."""
@@ -130,7 +131,8 @@ def _seed_files(directory: pathlib.Path, actor: Optional[str]) -> list[pathlib.P
 
 def run_label(config: str, result: Optional[dict], cell: Optional[Cell]) -> str:
     """`ours: <config>`, followed by what the run changed from its cell's configuration in the
-    grid (`--set` fields, `--env` arguments), as `FIELD=VALUE`s in parentheses."""
+    grid (`--set` fields, `--env` arguments) and from its task's physics of today, as
+    `FIELD=VALUE`s in parentheses."""
     settings = (result or {}).get("settings")
     if cell is None or settings is None:
         return f"ours: {config}"
@@ -139,6 +141,11 @@ def run_label(config: str, result: Optional[dict], cell: Optional[Cell]) -> str:
     changed = {name: value for name, value in settings["config"].items()
                if name in grid_config and value != grid_config[name]}
     changed.update(settings.get("env", {}))
+    physics = physics_of(settings, cell.task)
+    if physics is not None:  # a cell run on the task's physics of an earlier version, say
+        today = make_env(cell.task).settings()
+        changed.update({name: value for name, value in physics.items()
+                        if today.get(name) != value})
     shown = ", ".join(f"{name}={json.dumps(value) if not isinstance(value, str) else value}"
                       for name, value in changed.items())
     return f"ours: {config}" + (f" ({shown})" if shown else "")

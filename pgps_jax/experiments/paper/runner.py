@@ -266,8 +266,22 @@ _ADDED_SETTINGS = {"env": {}, "algo": "pgps"}
 """Settings that cells started before they existed ran under."""
 _PHYSICS_BEFORE_RECORDED = {"halfcheetah": {"iterations": 1}, "walker2d": {"iterations": 1},
                             "ant": {"iterations": 2}}
-"""Cells started before their physics was recorded ran on today's physics of their task
-but for these fields (the Newton iterations of halfcheetah, walker2d and ant then)."""
+"""The fields in which a task's physics differed from today's when cells did not record it
+yet (the Newton iterations of halfcheetah, walker2d and ant; the ant's results from before
+its Gym physics are not cells)."""
+
+
+def physics_of(settings: dict, task: str) -> Optional[dict]:
+    """The physics a cell's results were computed on (`MjxEnv.settings`; None for an env
+    without MJX physics): as its settings record it, or, for a cell from before they did, the
+    task's physics of then with the cell's `--env` arguments."""
+    if "physics" in settings:
+        return settings["physics"]
+    env = make_env(task)
+    if not isinstance(env, MjxEnv):
+        return None
+    then = {**env.settings(), **_PHYSICS_BEFORE_RECORDED.get(task, {})}
+    return {**then, **{k: v for k, v in settings.get("env", {}).items() if k in then}}
 _ADDED_CONFIG_FIELDS = ("elitism", "policy_delay", "exploration_noise")
 """PGPSConfig fields that cells started before they existed ran under at their defaults."""
 
@@ -277,8 +291,7 @@ def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
     """UsageError naming the settings in which the cell of `task` in `directory` differs from
     `now` (for a `done` cell, the devices its seeds were split over do not count: a cell
     continued from a checkpoint needs its batch, a result does not)."""
-    physics = now["physics"] and {**now["physics"], **_PHYSICS_BEFORE_RECORDED.get(task, {})}
-    saved = {**_ADDED_SETTINGS, "physics": physics, **saved}
+    saved = {**_ADDED_SETTINGS, **saved, "physics": physics_of(saved, task)}
     ignored = {"config"} | ({"devices"} if done else set())
     differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now" for key in now
               if key not in ignored and saved.get(key) != now[key]]
