@@ -30,6 +30,7 @@ import argparse
 import json
 import os
 import pathlib
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -79,13 +80,15 @@ def act(params: dict, obs: jax.Array) -> jax.Array:
 def play(task: str, models: pathlib.Path, episodes: int, env_kwargs: dict,
          engine: str = "mjx", steps: int = EPISODE_STEPS) -> dict:
     """`episodes` deterministic episodes of up to `steps` env steps of the authors' actor for
-    `task`, from PRNGKey(0)'s start states, stepped by MJX or by MuJoCo's C engine."""
+    `task`, from PRNGKey(0)'s start states, stepped by MJX or by MuJoCo's C engine; with the
+    physics they ran on (`MjxEnv.settings`)."""
     env = make_env(task, **env_kwargs)
     params = load_actor(models / f"{GYM_NAMES[task]}.npy", env.observation_size,
                         env.action_size)
     keys = jax.random.split(jax.random.PRNGKey(0), episodes)
     if engine == "c":
-        returns, lengths = np.array([play_in_c(env, params, key, steps) for key in keys]).T
+        episode = c_episodes(env, params)
+        returns, lengths = np.array([episode(key, steps) for key in keys]).T
     else:
         batch = jax.tree.map(lambda x: jnp.broadcast_to(x, (episodes, *x.shape)), params)
         limits = jnp.full((episodes,), steps, jnp.int32)
@@ -93,30 +96,42 @@ def play(task: str, models: pathlib.Path, episodes: int, env_kwargs: dict,
                                                 record=False))(batch, keys)
         returns, lengths = np.asarray(out.returns), np.asarray(out.lengths)
     return {"returns": np.round(returns, 1).tolist(), "lengths": lengths.astype(int).tolist(),
-            "mean": float(returns.mean()), "std": float(returns.std())}
+            "mean": float(returns.mean()), "std": float(returns.std()),
+            "physics": env.settings()}
 
 
-def play_in_c(env, params: dict, key: jax.Array, steps: int) -> tuple[float, int]:
-    """One episode's return and length (up to `steps`) with the env's model stepped by
-    `mujoco.mj_step` (`n_frames` steps per env step), from the env's reset state for `key`."""
+def c_episodes(env, params: dict) -> Callable[[jax.Array, int], tuple[float, int]]:
+    """A function of (key, steps) that plays one episode with the env's model stepped by
+    `mujoco.mj_step` (`n_frames` steps per env step) from the env's reset state for `key`,
+    and returns its return and length. As on MJX, the action is clipped, the episode ends
+    after a step that leaves the healthy range, and a step whose physics fails (a non-finite
+    state, or an acceleration MuJoCo had to reset) ends it without its reward."""
     model = env.mj_model
-    data = mujoco.MjData(model)
-    start = env.reset(key).pipeline_state
-    data.qpos[:], data.qvel[:] = np.asarray(start.qpos), np.asarray(start.qvel)
     policy = jax.jit(lambda obs: act(params, obs))
     observe, healthy = jax.jit(env.observation), jax.jit(env.is_healthy)
     reward = jax.jit(lambda q0, q1, a: env.reward(env.reward_terms(q0, q1, a)))
-    total = 0.0
-    for step in range(1, steps + 1):
-        action = np.clip(np.asarray(policy(observe(data.qpos, data.qvel))), -1.0, 1.0)
-        qpos0 = data.qpos.copy()
-        data.ctrl[:] = action
-        for _ in range(env.n_frames):
-            mujoco.mj_step(model, data)
-        total += float(reward(qpos0, data.qpos, action))
-        if not healthy(data.qpos, data.qvel):
-            break
-    return total, step
+    bad_acceleration = mujoco.mjtWarning.mjWARN_BADQACC
+
+    def episode(key: jax.Array, steps: int) -> tuple[float, int]:
+        data = mujoco.MjData(model)
+        start = env.reset(key).pipeline_state
+        data.qpos[:], data.qvel[:] = np.asarray(start.qpos), np.asarray(start.qvel)
+        total, length = 0.0, 0
+        while length < steps:
+            action = np.clip(np.asarray(policy(observe(data.qpos, data.qvel))), -1.0, 1.0)
+            qpos0 = data.qpos.copy()
+            data.ctrl[:] = action
+            for _ in range(env.n_frames):
+                mujoco.mj_step(model, data)
+            length += 1
+            if (data.warning[bad_acceleration].number
+                    or not np.isfinite(data.qpos).all() or not np.isfinite(data.qvel).all()):
+                break
+            total += float(reward(qpos0, data.qpos, action))
+            if not healthy(data.qpos, data.qvel):
+                break
+        return total, length
+    return episode
 
 
 def main():

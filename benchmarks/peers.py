@@ -14,9 +14,10 @@ experiment runner places its cells (a seed's training is a chain of small kernel
 a GPU mostly idle). Each seed's curve goes to `<out>/figure4/<task>/brax_<algo>/seed<k>.csv`
 (Step, Mean, Std: Brax reports the mean and std of its test episodes, not the episodes) and
 its final return (the last evaluation, at the last multiple of the evaluation spacing within
-`--steps`) and wall-clock, compilation included, to `seed<k>.json`. A seed with its
-`seed<k>.json` is done and not run again, so a cut-off command continues with the seeds it
-had not finished. `result.json` gathers the seeds' records, the settings and the device once
+`--steps`), wall-clock, compilation included, and the settings it ran with (the options and
+the task's physics) to `seed<k>.json`. A seed with its `seed<k>.json` is done and not run
+again, so a cut-off command continues with the seeds it had not finished; a seed done with
+other settings is refused, naming them. `result.json` gathers the seeds' records, the settings and the device once
 every seed is done.
 
 Brax 0.14.2 calls `jax.device_put_replicated`, which current JAX has removed; it is mapped to
@@ -27,6 +28,7 @@ import argparse
 import json
 import os
 import pathlib
+import signal
 import subprocess
 import sys
 import tempfile
@@ -38,7 +40,8 @@ import jax.numpy as jnp
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
-from pgps_jax.envs import make_env
+from pgps_jax.envs import ALL_TASKS, make_env
+from pgps_jax.envs.mjx_env import MjxEnv
 from pgps_jax.experiments.paper.side_by_side import placements
 
 SETTINGS = {
@@ -117,14 +120,17 @@ def run_seed(algo: str, task: str, steps: int, seed: int, every: int, normalize:
                      [[i, *row] for i, row in enumerate(rows)])
     record = {"seed": seed, "env_steps": int(rows[-1][0]), "final": rows[-1][1], "wall_s": wall,
               "device": f"1 × {jax.devices()[0].device_kind}", "concurrent": concurrent,
-              "run": run_settings(steps, every, normalize, env_kwargs)}
+              "run": run_settings(task, steps, every, normalize, env_kwargs)}
     rundir.write_atomic(directory / f"seed{seed}.json", json.dumps(record).encode())
 
 
-def run_settings(steps: int, every: int, normalize: bool, env_kwargs: dict) -> dict:
-    """What a seed's record must match for the seed to count as done by this command."""
+def run_settings(task: str, steps: int, every: int, normalize: bool, env_kwargs: dict
+                 ) -> dict:
+    """What a seed's record must match for the seed to count as done by this command: the
+    options, and the task's physics (`MjxEnv.settings`) that they and the package give."""
+    env = make_env(task, **env_kwargs)
     return {"--steps": steps, "--eval-every": every, "--no-normalize": not normalize,
-            "--env": env_kwargs}
+            "--env": env_kwargs, "physics": env.settings() if isinstance(env, MjxEnv) else None}
 
 
 def done_seeds(directory: pathlib.Path, seeds: list[int], settings: dict) -> list[int]:
@@ -135,12 +141,16 @@ def done_seeds(directory: pathlib.Path, seeds: list[int], settings: dict) -> lis
         path = directory / f"seed{seed}.json"
         if not path.exists():
             continue
-        ran = json.loads(path.read_text()).get("run", {})
+        ran = json.loads(path.read_text()).get("run")
+        if ran is None:
+            raise UsageError(f"seed {seed} in {directory} has a record from before records "
+                             "held their settings: use another --out, or remove the seed's "
+                             "files to run it again")
         for option, value in settings.items():
             if ran.get(option) != value:
                 raise UsageError(f"seed {seed} in {directory} ran with {option} "
-                                 f"{ran.get(option)!r}, this command asks {value!r}: pass the "
-                                 f"same {option}, or another --out")
+                                 f"{ran.get(option)!r}, this command asks {value!r}: use the "
+                                 "settings it ran with, or another --out")
         done.append(seed)
     return done
 
@@ -154,6 +164,7 @@ def run_concurrently(argv: list[str], seeds: list[int], concurrent: int) -> list
     inherited = {k: v for k, v in os.environ.items()
                  if k not in ("XLA_PYTHON_CLIENT_MEM_FRACTION", "XLA_PYTHON_CLIENT_PREALLOCATE")}
     waiting, running, failures = list(seeds), {}, []
+    terminate = signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     try:
         while waiting or running:
             for slot in range(len(slots)):
@@ -162,7 +173,7 @@ def run_concurrently(argv: list[str], seeds: list[int], concurrent: int) -> list
                     running[slot] = seed, said, subprocess.Popen(
                         [sys.executable, "-m", "benchmarks.peers", *argv, "--seed", str(seed),
                          "--concurrent", str(concurrent)], env={**inherited, **slots[slot]},
-                        stderr=said, start_new_session=True)
+                        stderr=said)
             time.sleep(1)
             for slot, (seed, said, child) in list(running.items()):
                 if child.poll() is not None:
@@ -172,7 +183,8 @@ def run_concurrently(argv: list[str], seeds: list[int], concurrent: int) -> list
                         lines = said.read().decode(errors="replace").rstrip().splitlines()
                         failures.append(f"seed {seed}: " + " | ".join(lines[-3:]))
                     said.close()
-    finally:
+    finally:  # an error, Ctrl-C or SIGTERM here: the seeds under way stop with this command
+        signal.signal(signal.SIGTERM, terminate)
         for seed, said, child in running.values():
             child.terminate()
             child.wait()
@@ -200,7 +212,7 @@ def main(argv=None):
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--algo", choices=sorted(SETTINGS), default="sac")
-    parser.add_argument("--task", default="halfcheetah")
+    parser.add_argument("--task", default="halfcheetah", choices=ALL_TASKS)
     parser.add_argument("--steps", type=int, default=1_000_000)
     parser.add_argument("--seeds", type=int, default=5, help="seeds 1..SEEDS")
     parser.add_argument("--seed", type=int, help="this seed alone (its curve and record; no "
@@ -227,7 +239,8 @@ def main(argv=None):
     directory = args.out / "figure4" / args.task / name
     directory.mkdir(parents=True, exist_ok=True)
     seeds = [args.seed] if args.seed is not None else list(range(1, args.seeds + 1))
-    settings = run_settings(args.steps, args.eval_every, not args.no_normalize, env_kwargs)
+    settings = run_settings(args.task, args.steps, args.eval_every, not args.no_normalize,
+                            env_kwargs)
     try:
         done = done_seeds(directory, seeds, settings)
     except UsageError as e:

@@ -252,15 +252,27 @@ def test_the_peers_run_seeds_side_by_side_as_each_alone_and_skip_the_done_ones(t
 
 
 def test_the_peers_name_each_seed_that_failed_in_its_own_process(tmp_path):
-    """A seed whose process fails makes the command fail, naming the seed and its error, and
-    leaves no result.json."""
-    failed = subprocess.run(
-        [sys.executable, "-m", "benchmarks.peers", "--algo", "ppo", "--task", "no_such_task",
-         "--steps", "8192", "--seeds", "2", "--concurrent", "2", "--out", str(tmp_path)],
-        cwd=pathlib.Path(__file__).parents[1], env={**os.environ, "JAX_PLATFORMS": "cpu"},
-        capture_output=True, text=True)
+    """A seed whose process fails (here: every process given `--seed`, through a
+    `sitecustomize`) makes the command fail, naming the seed and its error, and leaves no
+    result.json; an unknown task is refused before any seed starts, with the choices."""
+    failing = tmp_path / "failing_seeds"
+    failing.mkdir()
+    (failing / "sitecustomize.py").write_text(
+        "import sys\nif '--seed' in sys.argv:\n    raise SystemExit('this seed cannot run')\n")
+    path = os.pathsep.join([str(failing), *filter(None, [os.environ.get("PYTHONPATH")])])
+    command = [sys.executable, "-m", "benchmarks.peers", "--algo", "ppo", "--steps", "8192",
+               "--seeds", "2", "--concurrent", "2", "--out", str(tmp_path)]
+    root = pathlib.Path(__file__).parents[1]
+    failed = subprocess.run(command + ["--task", "point"], cwd=root, capture_output=True,
+                            text=True, env={**os.environ, "JAX_PLATFORMS": "cpu",
+                                            "PYTHONPATH": path})
     assert failed.returncode == 1
-    assert "2 seed(s) failed" in failed.stderr
+    assert "2 seed(s) failed" in failed.stderr and "this seed cannot run" in failed.stderr
     assert "seed 1:" in failed.stderr and "seed 2:" in failed.stderr
-    assert "no_such_task" in failed.stderr
-    assert not (tmp_path / "figure4" / "no_such_task" / "brax_ppo" / "result.json").exists()
+    assert not (tmp_path / "figure4" / "point" / "brax_ppo" / "result.json").exists()
+
+    unknown = subprocess.run(command + ["--task", "no_such_task"], cwd=root,
+                             capture_output=True, text=True,
+                             env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    assert unknown.returncode == 2 and "no_such_task" in unknown.stderr
+    assert "halfcheetah" in unknown.stderr and "point" in unknown.stderr

@@ -26,10 +26,12 @@ _REGISTRY = {
     "swimmer": Swimmer,
     "point": PointMass,
 }
-__all__ = ["Env", "State", "TASKS", "make_env"]
+__all__ = ["Env", "State", "TASKS", "ALL_TASKS", "make_env"]
 
 TASKS = ("halfcheetah", "hopper", "walker2d", "ant", "swimmer")
 """The MuJoCo tasks (the registry also holds "point")."""
+ALL_TASKS = tuple(_REGISTRY)
+"""Every name `make_env` takes: the MuJoCo tasks and the point mass."""
 
 
 def make_env(name: str, **kwargs) -> Env:
