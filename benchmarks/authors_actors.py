@@ -16,7 +16,7 @@ reference that a truncated MJX solve is measured against.
 Gym's Ant-v2 observation has 84 more entries than ours (`cfrc_ext`, zero under mujoco-py 2.0,
 openai/gym#1541); the weights that read them are dropped. Each record of `--out` (a JSON list,
 appended to) holds, per task, the returns and lengths of `--episodes` deterministic episodes
-of 1000 steps from PRNGKey(0)'s start states.
+of 1000 steps from PRNGKey(0)'s start states, and the physics they ran on.
 
     git clone https://github.com/NamKim88/PGPS
     python -m benchmarks.authors_actors --models PGPS/learned_models
@@ -105,12 +105,13 @@ def c_episodes(env, params: dict) -> Callable[[jax.Array, int], tuple[float, int
     `mujoco.mj_step` (`n_frames` steps per env step) from the env's reset state for `key`,
     and returns its return and length. As on MJX, the action is clipped, the episode ends
     after a step that leaves the healthy range, and a step whose physics fails (a non-finite
-    state, or an acceleration MuJoCo had to reset) ends it without its reward."""
+    state, or one MuJoCo had to reset) ends it without its reward."""
     model = env.mj_model
     policy = jax.jit(lambda obs: act(params, obs))
     observe, healthy = jax.jit(env.observation), jax.jit(env.is_healthy)
     reward = jax.jit(lambda q0, q1, a: env.reward(env.reward_terms(q0, q1, a)))
-    bad_acceleration = mujoco.mjtWarning.mjWARN_BADQACC
+    resets = [mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL,
+              mujoco.mjtWarning.mjWARN_BADQACC]  # MuJoCo reset a state it could not step
 
     def episode(key: jax.Array, steps: int) -> tuple[float, int]:
         data = mujoco.MjData(model)
@@ -124,8 +125,8 @@ def c_episodes(env, params: dict) -> Callable[[jax.Array, int], tuple[float, int
             for _ in range(env.n_frames):
                 mujoco.mj_step(model, data)
             length += 1
-            if (data.warning[bad_acceleration].number
-                    or not np.isfinite(data.qpos).all() or not np.isfinite(data.qvel).all()):
+            if any(data.warning[w].number for w in resets) or not (
+                    np.isfinite(data.qpos).all() and np.isfinite(data.qvel).all()):
                 break
             total += float(reward(qpos0, data.qpos, action))
             if not healthy(data.qpos, data.qvel):

@@ -42,6 +42,7 @@ from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import ALL_TASKS, make_env
 from pgps_jax.envs.mjx_env import MjxEnv
+from pgps_jax.experiments.paper.runner import physics_of
 from pgps_jax.experiments.paper.side_by_side import placements
 
 SETTINGS = {
@@ -133,7 +134,8 @@ def run_settings(task: str, steps: int, every: int, normalize: bool, env_kwargs:
             "--env": env_kwargs, "physics": env.settings() if isinstance(env, MjxEnv) else None}
 
 
-def done_seeds(directory: pathlib.Path, seeds: list[int], settings: dict) -> list[int]:
+def done_seeds(directory: pathlib.Path, task: str, seeds: list[int], settings: dict
+               ) -> list[int]:
     """The seeds of `seeds` whose records exist; UsageError if one of them ran with other
     settings (naming the option, what it ran with and what this command asks)."""
     done = []
@@ -146,6 +148,8 @@ def done_seeds(directory: pathlib.Path, seeds: list[int], settings: dict) -> lis
             raise UsageError(f"seed {seed} in {directory} has a record from before records "
                              "held their settings: use another --out, or remove the seed's "
                              "files to run it again")
+        if "physics" not in ran:  # a record from before records held the physics
+            ran = {**ran, "physics": physics_of({"env": ran["--env"]}, task)}
         for option, value in settings.items():
             if ran.get(option) != value:
                 raise UsageError(f"seed {seed} in {directory} ran with {option} "
@@ -184,11 +188,11 @@ def run_concurrently(argv: list[str], seeds: list[int], concurrent: int) -> list
                         failures.append(f"seed {seed}: " + " | ".join(lines[-3:]))
                     said.close()
     finally:  # an error, Ctrl-C or SIGTERM here: the seeds under way stop with this command
-        signal.signal(signal.SIGTERM, terminate)
         for seed, said, child in running.values():
             child.terminate()
             child.wait()
             said.close()
+        signal.signal(signal.SIGTERM, terminate)
     return failures
 
 
@@ -239,16 +243,21 @@ def main(argv=None):
     directory = args.out / "figure4" / args.task / name
     directory.mkdir(parents=True, exist_ok=True)
     seeds = [args.seed] if args.seed is not None else list(range(1, args.seeds + 1))
-    settings = run_settings(args.task, args.steps, args.eval_every, not args.no_normalize,
-                            env_kwargs)
+    if args.seed is None and args.concurrent > 1:
+        # this process only builds the env and asks which devices there are: it leaves their
+        # memory to the seeds
+        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     try:
-        done = done_seeds(directory, seeds, settings)
+        settings = run_settings(args.task, args.steps, args.eval_every, not args.no_normalize,
+                                env_kwargs)
+    except (TypeError, ValueError) as e:  # --env names that the task does not take, say
+        parser.error(f"--env {' '.join(args.env)}: {e}")
+    try:
+        done = done_seeds(directory, args.task, seeds, settings)
     except UsageError as e:
         parser.error(str(e))
     to_run = [seed for seed in seeds if seed not in done]
     if args.concurrent > 1 and len(to_run) > 1:
-        # this process only asks which devices there are: it leaves their memory to the seeds
-        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
         failures = run_concurrently(argv, to_run, args.concurrent)
         if failures:
             print(f"error: {len(failures)} seed(s) failed: " + "; ".join(failures),

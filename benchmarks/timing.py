@@ -1,5 +1,6 @@
 """Timing of jitted functions and the provenance of a measurement, shared by the benchmarks."""
 
+import pathlib
 import subprocess
 import time
 
@@ -23,11 +24,13 @@ def timed(fn, *args, repeats=5):
 def provenance() -> dict:
     """The device kind, JAX version and commit a measurement is taken with (the commit
     followed by "+changes" where the package or the benchmarks differ from it)."""
+    root = pathlib.Path(__file__).resolve().parents[1]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True).stdout.strip()
-    changed = subprocess.run(["git", "status", "--porcelain", "--", "pgps_jax", "benchmarks"],
-                             capture_output=True, text=True).stdout
-    if commit and any(not line[3:].startswith("benchmarks/results")
-                      for line in changed.splitlines()):
+                            text=True, cwd=root).stdout.strip()
+    status = subprocess.run(["git", "status", "--porcelain", "-z", "--", "pgps_jax",
+                             "benchmarks"], capture_output=True, text=True, cwd=root).stdout
+    paths = [entry[3:] if len(entry) > 3 and entry[2] == " " else entry  # a rename's source
+             for entry in status.split("\0") if entry]
+    if commit and any(not path.startswith("benchmarks/results/") for path in paths):
         commit += "+changes"
     return {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit}

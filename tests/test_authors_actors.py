@@ -1,10 +1,13 @@
 """`benchmarks.authors_actors`: an actor vector in the authors' PyTorch layout played on our
 envs, stepped by MJX and by MuJoCo's C engine."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from benchmarks import authors_actors
+from pgps_jax.envs import make_env
 
 OBS, HIDDEN, ACT = 8, authors_actors.HIDDEN, 2  # swimmer: no contacts, no constraint solve
 
@@ -39,3 +42,21 @@ def test_the_c_engine_plays_the_episodes_that_mjx_plays(tmp_path):
     assert mjx_run["lengths"] == c_run["lengths"] == [100, 100]
     assert abs(mjx_run["returns"][0] - mjx_run["returns"][1]) > 0.5  # two start states
     np.testing.assert_allclose(c_run["returns"], mjx_run["returns"], rtol=0.01, atol=0.05)
+
+
+def test_a_c_engine_episode_whose_physics_fails_ends_without_that_step_s_reward(monkeypatch):
+    """From a state too fast to step (MuJoCo resets it and warns), the episode ends at its
+    first step with no reward, as MJX's guard ends it."""
+    env = make_env("hopper")
+    params = {"layers": [(jnp.zeros((3, env.observation_size)), jnp.zeros(3))]}
+    reset = env.reset
+
+    def exploding(key):
+        state = reset(key)
+        return state.replace(pipeline_state=state.pipeline_state.replace(
+            qvel=jnp.full_like(state.pipeline_state.qvel, 1e11)))
+    monkeypatch.setattr(env, "reset", exploding)
+    assert authors_actors.c_episodes(env, params)(jax.random.PRNGKey(0), 10) == (0.0, 1)
+    monkeypatch.setattr(env, "reset", reset)
+    total, length = authors_actors.c_episodes(env, params)(jax.random.PRNGKey(0), 10)
+    assert length == 10 and total > 0  # standing still: the healthy reward, every step

@@ -167,8 +167,9 @@ def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
 
 
 def test_a_cell_from_before_the_physics_was_recorded_ran_on_the_physics_of_then():
-    """A result without `physics` counts as run on the task's physics of that time: hopper's
-    is today's, walker2d's and halfcheetah's solved with one Newton iteration (not three)."""
+    """A result without `physics` counts as run on the task's physics of that time, with its
+    `--env` arguments: hopper's is today's, walker2d's and halfcheetah's solved with one
+    Newton iteration and the ant's with two (not three)."""
     def settings(task):
         return runner._settings("pgps", for_task(task), BUDGET, 1, make_env(task))
     for task in ("hopper", "walker2d", "halfcheetah", "ant"):

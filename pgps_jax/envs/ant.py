@@ -16,9 +16,9 @@ four added foot spheres only), integrated with Gym's RK4.
 - Physics: RK4, Newton with 3 iterations and 4 line-search iterations. Brax's settings
   (Euler, feet-only contacts, 1 iteration) throw a walking ant above the healthy range:
   the authors' published Ant-v2 actor ends its episodes within 10–80 steps there, and
-  walks here at 5,675 (30 episodes, one ended early) as on the model solved to convergence
-  (5,728); with 2 iterations 5,039, three episodes ended early (BENCHMARKS.md, "The ant's
-  physics" and "The physics of the other tasks").
+  walks here at 5,346 (100 episodes, 13 ended early) against 5,629 (2 ended) on the model
+  solved to convergence; with 2 iterations 4,631 (24 ended), with 5 no better than 3
+  (BENCHMARKS.md, "The ant's physics" and "The physics of the other tasks").
 """
 
 import jax

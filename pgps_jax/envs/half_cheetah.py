@@ -8,7 +8,7 @@
 - Reset: qpos0 + U(±0.1), qvel = 0.1·N(0, 1).
 - Physics: Newton, 3 iterations, 4 line-search iterations, Euler damping off: the fewest
   iterations that carry the PGPS authors' trained runner within 5% of the model's converged
-  solve (30 episodes: 11,434 against 11,953; with 1 iteration 8,190, with 2 11,314;
+  solve (100 episodes: 11,605 against 11,991; with 1 iteration 7,790, with 2 11,224;
   BENCHMARKS.md, "The physics of the other tasks").
 """
 

@@ -12,8 +12,8 @@ Brax's model drops the `ref` of the rootz joint, so the torso height is z = 1.25
 - dt: 0.002 s timestep × frame_skip 4 = 0.008 s.
 - Reset: qpos0 + U(±5e-3), qvel = U(±5e-3).
 - Physics: Newton, 1 iteration, 4 line-search iterations, Euler damping off. It carries
-  the PGPS authors' trained hopper (3,731, every episode 1,000 steps; the model's converged
-  solve 3,510) and moves random actions and sinusoids within 3% and 7% of the model's own
+  the PGPS authors' trained hopper (3,730 over 30 episodes, none ended early; the model's
+  converged solve 3,254, 12 ended) and moves random actions and sinusoids within 3% and 7% of the model's own
   settings (BENCHMARKS.md).
 """
 

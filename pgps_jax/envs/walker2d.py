@@ -12,8 +12,8 @@ Brax's model drops the `ref` of the rootz joint, so the torso height is z = 1.25
 - Reset: qpos0 + U(±5e-3), qvel = U(±5e-3).
 - Physics: Newton, 3 iterations, 4 line-search iterations, Euler damping off: the fewest
   iterations that carry the PGPS authors' trained walker as the model's converged solve
-  does (30 episodes: 5,675 against 5,753, one fall in both; with 1 iteration 4,062 and 16
-  falls, with 2 5,553 and 4 falls; BENCHMARKS.md, "The physics of the other tasks").
+  does (100 episodes: 5,739 and 4 falls against 5,768 and 3; with 1 iteration 3,823 and 60
+  falls, with 2 5,529 and 13; BENCHMARKS.md, "The physics of the other tasks").
 """
 
 import jax

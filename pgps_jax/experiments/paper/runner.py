@@ -264,6 +264,8 @@ def _settings(algo: str, config, budget: Budget, devices: int, env) -> dict:
 
 _ADDED_SETTINGS = {"env": {}, "algo": "pgps"}
 """Settings that cells started before they existed ran under."""
+_ADDED_CONFIG_FIELDS = ("elitism", "policy_delay", "exploration_noise")
+"""PGPSConfig fields that cells started before they existed ran under at their defaults."""
 _PHYSICS_BEFORE_RECORDED = {"halfcheetah": {"iterations": 1}, "walker2d": {"iterations": 1},
                             "ant": {"iterations": 2}}
 """The fields in which a task's physics differed from today's when cells did not record it
@@ -282,8 +284,6 @@ def physics_of(settings: dict, task: str) -> Optional[dict]:
         return None
     then = {**env.settings(), **_PHYSICS_BEFORE_RECORDED.get(task, {})}
     return {**then, **{k: v for k, v in settings.get("env", {}).items() if k in then}}
-_ADDED_CONFIG_FIELDS = ("elitism", "policy_delay", "exploration_noise")
-"""PGPSConfig fields that cells started before they existed ran under at their defaults."""
 
 
 def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
