@@ -17,8 +17,8 @@ its final return (the last evaluation, at the last multiple of the evaluation sp
 `--steps`), wall-clock, compilation included, and the settings it ran with (the options and
 the task's physics) to `seed<k>.json`. A seed with its `seed<k>.json` is done and not run
 again, so a cut-off command continues with the seeds it had not finished; a seed done with
-other settings is refused, naming them. `result.json` gathers the seeds' records, the settings and the device once
-every seed is done.
+other settings is refused, naming them. `result.json` gathers the seeds' records, the
+settings and the device once every seed is done.
 
 Brax 0.14.2 calls `jax.device_put_replicated`, which current JAX has removed; it is mapped to
 `jax.device_put` of the stacked tree here.
@@ -41,8 +41,7 @@ from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import ALL_TASKS, make_env
-from pgps_jax.envs.mjx_env import MjxEnv
-from pgps_jax.experiments.paper.runner import physics_of
+from pgps_jax.experiments.paper.runner import env_physics, physics_of
 from pgps_jax.experiments.paper.side_by_side import placements
 
 SETTINGS = {
@@ -113,15 +112,16 @@ def train_seed(algo: str, task: str, steps: int, seed: int, every: int,
 
 
 def run_seed(algo: str, task: str, steps: int, seed: int, every: int, normalize: bool,
-             env_kwargs: dict, directory: pathlib.Path, concurrent: int) -> None:
-    """Trains one seed and writes its curve and its record (final return, wall-clock, the
-    settings it ran with)."""
+             env_kwargs: dict, directory: pathlib.Path, concurrent: int, settings: dict
+             ) -> None:
+    """Trains one seed and writes its curve and its record (final return, wall-clock, and
+    `settings`, those it ran with: `run_settings`)."""
     rows, wall = train_seed(algo, task, steps, seed, every, normalize, env_kwargs)
     rundir.write_csv(directory / f"seed{seed}.csv", ["", "Step", "Mean", "Std"],
                      [[i, *row] for i, row in enumerate(rows)])
     record = {"seed": seed, "env_steps": int(rows[-1][0]), "final": rows[-1][1], "wall_s": wall,
               "device": f"1 × {jax.devices()[0].device_kind}", "concurrent": concurrent,
-              "run": run_settings(task, steps, every, normalize, env_kwargs)}
+              "run": settings}
     rundir.write_atomic(directory / f"seed{seed}.json", json.dumps(record).encode())
 
 
@@ -129,9 +129,8 @@ def run_settings(task: str, steps: int, every: int, normalize: bool, env_kwargs:
                  ) -> dict:
     """What a seed's record must match for the seed to count as done by this command: the
     options, and the task's physics (`MjxEnv.settings`) that they and the package give."""
-    env = make_env(task, **env_kwargs)
     return {"--steps": steps, "--eval-every": every, "--no-normalize": not normalize,
-            "--env": env_kwargs, "physics": env.settings() if isinstance(env, MjxEnv) else None}
+            "--env": env_kwargs, "physics": env_physics(make_env(task, **env_kwargs))}
 
 
 def done_seeds(directory: pathlib.Path, task: str, seeds: list[int], settings: dict
@@ -266,7 +265,7 @@ def main(argv=None):
     else:
         for seed in to_run:
             run_seed(args.algo, args.task, args.steps, seed, args.eval_every,
-                     not args.no_normalize, env_kwargs, directory, args.concurrent)
+                     not args.no_normalize, env_kwargs, directory, args.concurrent, settings)
     if args.seed is None:
         result = gather(directory, seeds, name, args, env_kwargs)
         print(json.dumps({k: v for k, v in result.items() if k != "settings"}))

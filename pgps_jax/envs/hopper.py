@@ -13,8 +13,8 @@ Brax's model drops the `ref` of the rootz joint, so the torso height is z = 1.25
 - Reset: qpos0 + U(±5e-3), qvel = U(±5e-3).
 - Physics: Newton, 1 iteration, 4 line-search iterations, Euler damping off. It carries
   the PGPS authors' trained hopper (3,730 over 30 episodes, none ended early; the model's
-  converged solve 3,254, 12 ended) and moves random actions and sinusoids within 3% and 7% of the model's own
-  settings (BENCHMARKS.md).
+  converged solve 3,254, 12 ended) and moves random actions and sinusoids within 3% and 7%
+  of the model's own settings (BENCHMARKS.md).
 """
 
 import jax

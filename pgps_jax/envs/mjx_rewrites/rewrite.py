@@ -4,8 +4,8 @@
 equation, in the caller's trace (so under `vmap` the replacements are batched like the
 rest), each under its own source and named scopes (`jax.named_scope`), so that a profile
 still names MJX's stages. An equation that a `Rule` applies to is computed by the rule; every
-other one is bound as traced. Rules reach into the closed sub-jaxprs of loops, conditionals and jitted calls
-that hold an equation they apply to; the others are left as they are.
+other one is bound as traced. Rules reach into the closed sub-jaxprs of loops, conditionals
+and jitted calls that hold an equation they apply to; the others are left as they are.
 
 A rule can stop fitting the library it was written for. One that matches nothing in the
 traced function, or whose computation raises (a primitive's parameters renamed, say), leaves

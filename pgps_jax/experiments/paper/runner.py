@@ -251,10 +251,15 @@ class AtBudget:
         return jax.device_put(current, sharding)
 
 
+def env_physics(env) -> Optional[dict]:
+    """The physics an env simulates (`MjxEnv.settings`); None for an env without MJX physics
+    (the point mass)."""
+    return env.settings() if isinstance(env, MjxEnv) else None
+
+
 def _settings(algo: str, config, budget: Budget, devices: int, env) -> dict:
-    """What a cell's results depend on (JSON values), the env's physics included (None for
-    an env without MJX physics, the point mass)."""
-    physics = env.settings() if isinstance(env, MjxEnv) else None
+    """What a cell's results depend on (JSON values), the env's physics included."""
+    physics = env_physics(env)
     return json.loads(json.dumps({
         "algo": algo, "config": dataclasses.asdict(config),
         "evaluation": dataclasses.asdict(budget.evaluation), "env": dict(budget.env),
@@ -279,10 +284,10 @@ def physics_of(settings: dict, task: str) -> Optional[dict]:
     task's physics of then with the cell's `--env` arguments."""
     if "physics" in settings:
         return settings["physics"]
-    env = make_env(task)
-    if not isinstance(env, MjxEnv):
+    today = env_physics(make_env(task))
+    if today is None:
         return None
-    then = {**env.settings(), **_PHYSICS_BEFORE_RECORDED.get(task, {})}
+    then = {**today, **_PHYSICS_BEFORE_RECORDED.get(task, {})}
     return {**then, **{k: v for k, v in settings.get("env", {}).items() if k in then}}
 
 
