@@ -20,6 +20,7 @@ import argparse
 import concurrent.futures
 import dataclasses
 import json
+import os
 import time
 
 from brax import envs as brax_envs
@@ -204,7 +205,8 @@ def main():
         compiled = {task: {k: v if k == "env" else v.result() for k, v in fns.items()}
                     for task, fns in pending.items()}
     print(f"compiled in {time.perf_counter() - start:.0f} s", flush=True)
-    results = {"device": jax.devices()[0].device_kind, "warmup_steps": WARMUP,
+    results = {"device": jax.devices()[0].device_kind, "xla_flags": os.environ.get("XLA_FLAGS", ""),
+               "warmup_steps": WARMUP,
                "timed_steps": STEPS, "repeats": REPEATS, "tasks": {}}
     for task in tasks:
         results["tasks"][task] = measure(task, compiled[task], alternative)
