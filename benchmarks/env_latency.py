@@ -10,10 +10,14 @@ the MJX backend). Also at batch 60, one variant of our env (`--alternative`: by 
 Newton with 1 iteration, hopper's and swimmer's own and two fewer than the other tasks').
 Every
 function is compiled before any is timed; a figure is the median of 5 timed calls of 100
-steps (Brax's env: 2 calls of 20 steps, it is slow).
+steps (Brax's env: 2 calls of 20 steps, it is slow). `--quick` times batch 60 alone, without
+Brax's env: a quarter of the compilation, for comparing settings or XLA flags (`XLA_FLAGS`
+is recorded with the results).
 
     python -m benchmarks.env_latency  # table on stdout, benchmarks/results/env_latency.json
     python -m benchmarks.env_latency --tasks ant --alternative unroll_solver=false --out ant.json
+    XLA_FLAGS=--xla_gpu_enable_command_buffer=+WHILE python -m benchmarks.env_latency --quick \
+        --tasks ant --out ant_command_buffers.json
 """
 
 import argparse
@@ -103,19 +107,20 @@ def active_contacts(data) -> float:
     return float(jnp.mean(jnp.sum(data._impl.contact.dist < 0, axis=-1)))
 
 
-def build(task: str, pool: concurrent.futures.Executor, alternative: dict) -> dict:
+def build(task: str, pool: concurrent.futures.Executor, alternative: dict,
+          batches: tuple[int, ...], with_brax: bool) -> dict:
     """Starts compiling, on `pool`, every function one task's measurements need."""
     env = make_env(task)
     key = jax.random.PRNGKey(0)
     jobs = {}
-    for batch in BATCHES:
+    for batch in batches:
         state = jax.eval_shape(jax.vmap(env.reset), jax.random.split(key, batch))
         jobs["env", batch] = (env_rollout(env, batch, STEPS), state, key)
         jobs["bare", batch] = (bare_rollout(env, batch, STEPS), state.pipeline_state, key)
     alt = make_env(task, **alternative)
     state = jax.eval_shape(jax.vmap(alt.reset), jax.random.split(key, BRAX_BATCH))
     jobs["alternative"] = (env_rollout(alt, BRAX_BATCH, STEPS), state, key)
-    if task in BRAX_NAMES:
+    if with_brax and task in BRAX_NAMES:
         keys = jax.random.split(key, BRAX_BATCH)
         qpos, qvel = (jax.ShapeDtypeStruct((BRAX_BATCH, n), jnp.float32)
                       for n in (env.mj_model.nq, env.mj_model.nv))
@@ -128,11 +133,12 @@ def build(task: str, pool: concurrent.futures.Executor, alternative: dict) -> di
     return {"env": env} | {k: pool.submit(compile_fn, *job) for k, job in jobs.items()}
 
 
-def measure(task: str, fns: dict, alternative: dict) -> dict:
-    """Times one task's compiled functions; returns its figures."""
+def measure(task: str, fns: dict, alternative: dict, batches: tuple[int, ...]) -> dict:
+    """Times one task's compiled functions; returns its figures (Brax's env None where it was
+    not compiled)."""
     env, key = fns["env"], jax.random.PRNGKey(1)
     out = {"n_frames": env.n_frames, "dt": env.dt, "physics": dataclasses.asdict(env.physics)}
-    for batch in BATCHES:
+    for batch in batches:
         state = jax.jit(jax.vmap(env.reset))(jax.random.split(key, batch))
         for i in range(WARMUP // STEPS):
             state = fns["env", batch](state, jax.random.fold_in(key, 100 + i))
@@ -164,11 +170,11 @@ def alternative_name(alternative: dict) -> str:
     return "_".join(f"{name}_{value}" for name, value in alternative.items())
 
 
-def table(results: dict, alternative: dict) -> str:
+def table(results: dict, alternative: dict, batches: tuple[int, ...]) -> str:
     """The results as a markdown table."""
     variant = alternative_name(alternative)
-    header = ["task", *(f"env ms @{b}" for b in BATCHES), f"floor ms @{BRAX_BATCH}",
-              f"ratio @{BRAX_BATCH}", f"ratio @{BATCHES[0]} / @{BATCHES[-1]}",
+    header = ["task", *(f"env ms @{b}" for b in batches), f"floor ms @{BRAX_BATCH}",
+              f"ratio @{BRAX_BATCH}", f"ratio @{batches[0]} / @{batches[-1]}",
               f"Brax env ms @{BRAX_BATCH} (as shipped / our settings)",
               f"ours, {variant}, ms @{BRAX_BATCH}"]
     lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
@@ -178,9 +184,9 @@ def table(results: dict, alternative: dict) -> str:
                           else f"{r[f'{n}_ms_batch_{BRAX_BATCH}']:.2f}"
                           for n in ("brax", "brax_same_settings"))
         lines.append(
-            f"| {task} | " + " | ".join(f"{r[f'batch_{x}']['env_ms']:.2f}" for x in BATCHES)
-            + f" | {b['bare_ms']:.2f} | {b['ratio']:.2f} | {r[f'batch_{BATCHES[0]}']['ratio']:.2f}"
-            f" / {r[f'batch_{BATCHES[-1]}']['ratio']:.2f} | {brax}"
+            f"| {task} | " + " | ".join(f"{r[f'batch_{x}']['env_ms']:.2f}" for x in batches)
+            + f" | {b['bare_ms']:.2f} | {b['ratio']:.2f} | {r[f'batch_{batches[0]}']['ratio']:.2f}"
+            f" / {r[f'batch_{batches[-1]}']['ratio']:.2f} | {brax}"
             f" | {r[f'{variant}_ms_batch_{BRAX_BATCH}']:.2f} |")
     return "\n".join(lines)
 
@@ -193,27 +199,35 @@ def main():
                         default=[f"{k}={v}" for k, v in ALTERNATIVE.items()],
                         help="make_env arguments of the variant also timed at batch 60 "
                              "(e.g. unroll_solver=false)")
+    parser.add_argument("--quick", action="store_true",
+                        help=f"batch {BRAX_BATCH} alone, without Brax's env")
     args = parser.parse_args()
     try:
         alternative = env_assignments(args.alternative, "--alternative")
     except UsageError as e:
         parser.error(str(e))
     tasks = args.tasks.split(",")
+    unknown = sorted(set(tasks) - set(TASKS))
+    if unknown:
+        parser.error(f"unknown task(s) {', '.join(unknown)}; choose from {', '.join(TASKS)}")
+    batches = (BRAX_BATCH,) if args.quick else BATCHES
     start = time.perf_counter()
     with concurrent.futures.ThreadPoolExecutor(8) as pool:
-        pending = {task: build(task, pool, alternative) for task in tasks}
+        pending = {task: build(task, pool, alternative, batches, not args.quick)
+                   for task in tasks}
         compiled = {task: {k: v if k == "env" else v.result() for k, v in fns.items()}
                     for task, fns in pending.items()}
-    print(f"compiled in {time.perf_counter() - start:.0f} s", flush=True)
+    compile_s = time.perf_counter() - start
+    print(f"compiled in {compile_s:.0f} s", flush=True)
     results = {"device": jax.devices()[0].device_kind, "xla_flags": os.environ.get("XLA_FLAGS", ""),
-               "warmup_steps": WARMUP,
-               "timed_steps": STEPS, "repeats": REPEATS, "tasks": {}}
+               "compile_s": compile_s, "warmup_steps": WARMUP, "timed_steps": STEPS,
+               "repeats": REPEATS, "tasks": {}}
     for task in tasks:
-        results["tasks"][task] = measure(task, compiled[task], alternative)
+        results["tasks"][task] = measure(task, compiled[task], alternative, batches)
         print(task, json.dumps(results["tasks"][task]), flush=True)
         with open(args.out, "w") as f:
             json.dump(results, f, indent=1)
-    print(table(results, alternative))
+    print(table(results, alternative, batches))
 
 
 if __name__ == "__main__":
