@@ -147,8 +147,8 @@ def done_seeds(directory: pathlib.Path, task: str, seeds: list[int], settings: d
             raise UsageError(f"seed {seed} in {directory} has a record from before records "
                              "held their settings: use another --out, or remove the seed's "
                              "files to run it again")
-        if "physics" not in ran:  # a record from before records held the physics
-            ran = {**ran, "physics": physics_of({"env": ran["--env"]}, task)}
+        recorded = {"physics": ran["physics"]} if "physics" in ran else {}  # older: none
+        ran = {**ran, "physics": physics_of({"env": ran["--env"], **recorded}, task)}
         for option, value in settings.items():
             if ran.get(option) != value:
                 raise UsageError(f"seed {seed} in {directory} ran with {option} "

@@ -161,7 +161,7 @@ def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
     result = json.loads((out / "figure4" / "hopper" / "pgps" / runner.RESULT).read_text())
     assert result["settings"]["physics"] == {
         "start_pose": "qpos0", "integrator": "euler", "solver": "newton", "iterations": 1,
-        "ls_iterations": 4, "euler_damping": False, "floor_contacts": "model"}
+        "ls_iterations": 4, "euler_damping": False, "floor_contacts": "model", "impl": "jax"}
     before_env = {k: v for k, v in result["settings"].items() if k != "env"}
     runner._require_same(out, before_env, result["settings"], "hopper")  # from before --env
 
@@ -186,6 +186,17 @@ def test_a_cell_from_before_the_physics_was_recorded_ran_on_the_physics_of_then(
         BUDGET, env=(("iterations", 3),)), 1, make_env("walker2d", iterations=3))
     runner._require_same(pathlib.Path("cell"), {k: v for k, v in now.items() if k != "physics"},
                          now, "walker2d")
+
+
+def test_a_recorded_physics_from_before_impl_ran_on_jax():
+    """Physics recorded before `impl` existed ran on MJX's JAX implementation: the same as a
+    cell run today on it, not as one on Warp."""
+    now = runner._settings("pgps", for_task("hopper"), BUDGET, 1, make_env("hopper"))
+    before = {**now, "physics": {k: v for k, v in now["physics"].items() if k != "impl"}}
+    runner._require_same(pathlib.Path("cell"), before, now, "hopper")
+    on_warp = {**now, "physics": {**now["physics"], "impl": "warp"}}
+    with pytest.raises(UsageError, match="'impl': 'jax'.*'impl': 'warp'"):
+        runner._require_same(pathlib.Path("cell"), before, on_warp, "hopper")
 
 
 def test_set_reads_values_as_the_training_command_line_does():

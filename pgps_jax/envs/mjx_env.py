@@ -11,7 +11,6 @@ import dataclasses
 from brax.envs.base import Env, State
 import jax
 import jax.numpy as jnp
-from mujoco import mjx
 
 from pgps_jax.envs import nan_guard, physics
 from pgps_jax.envs.physics import Physics
@@ -58,7 +57,7 @@ class MjxEnv(Env):
         pose = (physics.init_qpos(self.mj_model) if start_pose == "init_qpos"
                 else self.mj_model.qpos0)
         self._init_qpos = jnp.asarray(pose)
-        self._data0 = mjx.make_data(self.mjx_model)
+        self._data0 = physics.make_data(self.mj_model, self.physics.impl)
 
     def settings(self) -> dict:
         """What the simulated task depends on beyond its class: the start pose and the

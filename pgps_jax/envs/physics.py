@@ -1,7 +1,9 @@
 """MuJoCo models from Brax's assets, their solver settings, and the frame-skip step on MJX.
 
 An env step is `n_frames` calls of `mjx.step`, with the control held fixed (Gym's
-`do_simulation`). Nothing else is computed per frame.
+`do_simulation`). Nothing else is computed per frame. MJX computes it in JAX (`impl="jax"`,
+the default) or with MuJoCo Warp's kernels (`impl="warp"`, where the `warp-lang` package is
+installed).
 """
 
 import contextlib
@@ -24,6 +26,14 @@ _ASSETS = epath.resource_path(brax.__name__) / "envs/assets"
 _SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
 _INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4,
                 "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}
+IMPLS = ("jax", "warp")
+"""MJX's implementations: its JAX code, or MuJoCo Warp's kernels called from JAX."""
+WARP_CONTACTS_PER_WORLD = 64
+"""MuJoCo Warp holds the contacts of every env of a batch in one array: room for this many
+per env (the ant on Gym's floor contacts has at most 13)."""
+WARP_MAX_WORLDS = 4096
+"""The envs (seeds × envs per seed) whose contacts that array has room for; a larger batch
+can run out of room, which MuJoCo Warp reports as an overflow."""
 FLOOR_CONTACTS = ("model", "gym")
 """Which geoms touch the floor: those the Brax asset lets (ant: four zero-mass foot spheres
 that Brax added), or Gym's: every body geom with a 0.01 m contact margin, the added spheres
@@ -61,6 +71,9 @@ class Physics:
     unroll_solver: Optional[bool] = None
     """The solver's iterations, when there are several, without a device loop
     (`mjx_rewrites`); None: on a GPU."""
+    impl: str = "jax"
+    """One of `IMPLS`. Warp's solver is MuJoCo's, not MJX's JAX one, so its states differ
+    from JAX's beyond float tolerance; the `mjx_rewrites` apply to JAX's alone."""
 
     def model_settings(self) -> dict:
         """The fields that define the simulated physics (all but `SPEED_ONLY`)."""
@@ -70,6 +83,8 @@ class Physics:
         if self.integrator not in _INTEGRATORS:
             raise ValueError(f"integrator must be one of {sorted(_INTEGRATORS)}, "
                              f"got {self.integrator!r}")
+        if self.impl not in IMPLS:
+            raise ValueError(f"impl must be one of {', '.join(IMPLS)}, got {self.impl!r}")
         if self.solver not in _SOLVERS:
             raise ValueError(f"solver must be one of {sorted(_SOLVERS)}, got {self.solver!r}")
         if self.floor_contacts not in FLOOR_CONTACTS:
@@ -109,7 +124,39 @@ def load_model(xml: str, physics: Physics) -> tuple[mujoco.MjModel, mjx.Model]:
         model.opt.disableflags &= ~eulerdamp
     else:
         model.opt.disableflags |= eulerdamp
-    return model, mjx.put_model(model)
+    if physics.impl != "warp":
+        return model, mjx.put_model(model)
+    _require_warp()
+    warp_model = mjx.put_model(model, impl="warp")
+    return model, warp_model.tree_replace({"opt._impl.warn_overflow": _warp_overflows_warned(
+        warp_model.opt._impl.warn_overflow)})
+
+
+def _warp_overflows_warned(flags: int) -> int:
+    """MuJoCo Warp's overflow warnings less those of the solver's (line search) iterations
+    reaching their limit, which a fixed iteration count reaches by design."""
+    from mujoco.mjx.third_party.mujoco_warp._src.types import OverflowType
+    return int(flags) & ~int(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
+
+
+def _require_warp() -> None:
+    """A RuntimeError that names the missing package unless MuJoCo Warp can run."""
+    from mujoco.mjx import warp as mjx_warp
+    if not mjx_warp.WARP_INSTALLED:
+        raise RuntimeError("impl='warp' needs the warp-lang package: pip install warp-lang "
+                           "(or impl='jax', the default)")
+    warp = mjx_warp.warp
+    warp.config.log_level = max(warp.config.log_level, warp.LOG_WARNING)  # no line per kernel
+
+
+def make_data(model: mujoco.MjModel, impl: str) -> mjx.Data:
+    """A zero physics state for `model` on the `impl` of `IMPLS`; for Warp, with room for
+    `WARP_CONTACTS_PER_WORLD` contacts per env in batches of up to `WARP_MAX_WORLDS` envs."""
+    if impl != "warp":
+        return mjx.make_data(model)
+    return mjx.make_data(model, impl="warp",
+                         naconmax=WARP_CONTACTS_PER_WORLD * WARP_MAX_WORLDS,
+                         njmax=WARP_CONTACTS_PER_WORLD * 6 + model.nv)
 
 
 def _gym_floor_contacts(spec: mujoco.MjSpec) -> None:
@@ -183,9 +230,13 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
     its condition, which at these batch sizes costs more than the physics between the pauses
     (halfcheetah, batch 10 / 40 on an H200: 1.70 / 1.99 ms per env step in a loop, 1.46 /
     1.50 ms unrolled).
-    The price is compiling `n_frames` copies of `mjx.step`.
+    The price is compiling `n_frames` copies of `mjx.step`. A Warp model takes `mjx.step`
+    as it is.
     """
     on_gpu = default_platform() == "gpu"
+    if model.impl == mjx.Impl.WARP:
+        return jax.lax.fori_loop(0, n_frames, lambda _, d: mjx.step(model, d), data,
+                                 unroll=on_gpu)
     if write_out_linalg is None:
         write_out_linalg = on_gpu and model.nv <= small_linalg.MAX_SIZE
     if unroll_line_search is None:

@@ -1,8 +1,8 @@
 """`mujoco.mjx`, imported without the lines it prints when its optional Warp backend is absent.
 
 `mujoco.mjx` prints "Failed to import warp: No module named 'warp'" (and the same for
-`mujoco_warp`) on import wherever Warp is not installed; MJX's JAX backend, which every task
-here uses, does not need it. Any other line printed during the import still reaches stdout.
+`mujoco_warp`) on import wherever Warp is not installed; MJX's JAX backend, the tasks'
+default, does not need it. Any other line printed during the import still reaches stdout.
 """
 
 import contextlib

@@ -278,12 +278,17 @@ yet (the Newton iterations of halfcheetah, walker2d and ant; the ant's results f
 its Gym physics are not cells)."""
 
 
+_PHYSICS_FIELDS_ADDED = {"impl": "jax"}
+"""Physics settings that cells recorded before they existed ran under."""
+
+
 def physics_of(settings: dict, task: str) -> Optional[dict]:
     """The physics a cell's results were computed on (`MjxEnv.settings`; None for an env
     without MJX physics): as its settings record it, or, for a cell from before they did, the
     task's physics of then with the cell's `--env` arguments."""
     if "physics" in settings:
-        return settings["physics"]
+        recorded = settings["physics"]
+        return None if recorded is None else {**_PHYSICS_FIELDS_ADDED, **recorded}
     today = env_physics(make_env(task))
     if today is None:
         return None
