@@ -30,7 +30,8 @@ IMPLS = ("jax", "warp")
 """MJX's implementations: its JAX code, or MuJoCo Warp's kernels called from JAX."""
 WARP_CONTACTS_PER_WORLD = 64
 """MuJoCo Warp holds the contacts of every env of a batch in one array: room for this many
-per env (the ant on Gym's floor contacts has at most 13)."""
+per env (the ant, whose 13 geoms touch the floor on Gym's contacts, has the most of the
+tasks)."""
 WARP_MAX_WORLDS = 4096
 """The envs (seeds × envs per seed) whose contacts that array has room for; a larger batch
 can run out of room, which MuJoCo Warp reports as an overflow."""
@@ -156,7 +157,7 @@ def make_data(model: mujoco.MjModel, impl: str) -> mjx.Data:
         return mjx.make_data(model)
     return mjx.make_data(model, impl="warp",
                          naconmax=WARP_CONTACTS_PER_WORLD * WARP_MAX_WORLDS,
-                         njmax=WARP_CONTACTS_PER_WORLD * 6 + model.nv)
+                         njmax=WARP_CONTACTS_PER_WORLD * 6 + model.nv)  # ≤ 6 rows a contact
 
 
 def _gym_floor_contacts(spec: mujoco.MjSpec) -> None:
