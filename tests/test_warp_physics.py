@@ -7,9 +7,12 @@ settings, the frame skip and the reset reach Warp as they reach JAX.
 
 import jax
 import jax.numpy as jnp
+from mujoco import mjx
 import numpy as np
 import pytest
 
+from pgps_jax.cli.assignments import env_assignments
+from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import make_env
 
 N_ENVS = 3
@@ -36,8 +39,11 @@ def _episodes(env, n_steps: int):
 def test_warp_plays_jax_episodes_when_both_converge(task, n_steps):
     """Hopper (Euler) and the ant (RK4, every geom on Gym's floor contacts): the same
     episodes to float tolerance."""
+    warp_env = make_env(task, impl="warp", **CONVERGED)
+    assert warp_env.mjx_model.impl == mjx.Impl.WARP and warp_env.reset(
+        jax.random.PRNGKey(0)).pipeline_state.impl == mjx.Impl.WARP
     on_jax = _episodes(make_env(task, **CONVERGED), n_steps)
-    on_warp = _episodes(make_env(task, impl="warp", **CONVERGED), n_steps)
+    on_warp = _episodes(warp_env, n_steps)
     for name, a, b in zip(("obs", "reward", "done"), on_jax, on_warp):
         np.testing.assert_allclose(b, a, atol=1e-3, rtol=1e-4, err_msg=name)
     assert np.abs(on_jax[0][-1] - on_jax[0][0]).max() > 0.1  # the bodies did move
@@ -47,6 +53,7 @@ def test_nan_guard_keeps_a_warp_env_finite():
     """A NaN action ends its episode and keeps its previous physics; the other envs, whose
     contacts share Warp's arrays with it, step on."""
     env = make_env("hopper", impl="warp")
+    assert env.mjx_model.impl == mjx.Impl.WARP
     reset, step = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.step))
     state = reset(jax.random.split(jax.random.PRNGKey(0), N_ENVS))
     action = jnp.full((N_ENVS, env.action_size), 0.5).at[1, 0].set(jnp.nan)
@@ -58,6 +65,21 @@ def test_nan_guard_keeps_a_warp_env_finite():
     assert np.isfinite(again.obs).all() and not again.metrics["unstable"].any()
 
 
+def test_warp_and_jax_differ_with_a_truncated_solve():
+    """With hopper's one solver iteration the two engines' episodes part: Warp is other
+    physics, recorded as such."""
+    on_jax = _episodes(make_env("hopper"), 5)
+    on_warp = _episodes(make_env("hopper", impl="warp"), 5)
+    assert np.abs(on_warp[0] - on_jax[0]).max() > 1e-2
+    assert make_env("hopper", impl="warp").settings()["impl"] == "warp"
+
+
 def test_unknown_impl_names_the_choices():
     with pytest.raises(ValueError, match="impl must be one of jax, warp, got 'cuda'"):
         make_env("hopper", impl="cuda")
+
+
+def test_commands_that_train_refuse_warp():
+    with pytest.raises(UsageError, match="impl=warp can step an env .* but not train"):
+        env_assignments(["impl=warp"])
+    assert env_assignments(["impl=warp"], allow_warp=True) == {"impl": "warp"}

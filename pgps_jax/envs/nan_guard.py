@@ -25,8 +25,8 @@ def guard(prev: State, new: State, finite: jax.Array) -> State:
 
     metrics = {k: keep(v, prev.metrics.get(k, jnp.zeros_like(v))) for k, v in new.metrics.items()}
     metrics["unstable"] = keep(0.0, 1.0).astype(jnp.float32)
-    if isinstance(new.pipeline_state, mjx.Data):  # Warp's contacts are shared by a batch
-        pipeline_state = prev.pipeline_state.where(finite, new.pipeline_state)
+    if isinstance(new.pipeline_state, mjx.Data):  # MJX's merge (Warp's contacts are global)
+        pipeline_state = new.pipeline_state.where(~finite, prev.pipeline_state)
     else:
         pipeline_state = jax.tree.map(keep, new.pipeline_state, prev.pipeline_state)
     return new.replace(

@@ -33,8 +33,9 @@ WARP_CONTACTS_PER_WORLD = 64
 per env (the ant, whose 13 geoms touch the floor on Gym's contacts, has the most of the
 tasks)."""
 WARP_MAX_WORLDS = 4096
-"""The envs (seeds × envs per seed) whose contacts that array has room for; a larger batch
-can run out of room, which MuJoCo Warp reports as an overflow."""
+"""The envs of a batch whose contacts that array has room for (about 50 MB, allocated
+whatever the batch); a larger batch can run out of room, which MuJoCo Warp reports as an
+overflow."""
 FLOOR_CONTACTS = ("model", "gym")
 """Which geoms touch the floor: those the Brax asset lets (ant: four zero-mass foot spheres
 that Brax added), or Gym's: every body geom with a 0.01 m contact margin, the added spheres
@@ -73,8 +74,10 @@ class Physics:
     """The solver's iterations, when there are several, without a device loop
     (`mjx_rewrites`); None: on a GPU."""
     impl: str = "jax"
-    """One of `IMPLS`. Warp's solver is MuJoCo's, not MJX's JAX one, so its states differ
-    from JAX's beyond float tolerance; the `mjx_rewrites` apply to JAX's alone."""
+    """One of `IMPLS`. Warp's solver is MuJoCo's, not MJX's JAX one: solved to convergence
+    the two agree, with a truncated solve their states differ beyond float tolerance. The
+    `mjx_rewrites` apply to JAX's alone. Warp steps envs but cannot train yet
+    (`cli.assignments.env_assignments`)."""
 
     def model_settings(self) -> dict:
         """The fields that define the simulated physics (all but `SPEED_ONLY`)."""
@@ -126,7 +129,7 @@ def load_model(xml: str, physics: Physics) -> tuple[mujoco.MjModel, mjx.Model]:
     else:
         model.opt.disableflags |= eulerdamp
     if physics.impl != "warp":
-        return model, mjx.put_model(model)
+        return model, mjx.put_model(model, impl="jax")
     _require_warp()
     warp_model = mjx.put_model(model, impl="warp")
     return model, warp_model.tree_replace({"opt._impl.warn_overflow": _warp_overflows_warned(
@@ -154,7 +157,7 @@ def make_data(model: mujoco.MjModel, impl: str) -> mjx.Data:
     """A zero physics state for `model` on the `impl` of `IMPLS`; for Warp, with room for
     `WARP_CONTACTS_PER_WORLD` contacts per env in batches of up to `WARP_MAX_WORLDS` envs."""
     if impl != "warp":
-        return mjx.make_data(model)
+        return mjx.make_data(model, impl="jax")
     return mjx.make_data(model, impl="warp",
                          naconmax=WARP_CONTACTS_PER_WORLD * WARP_MAX_WORLDS,
                          njmax=WARP_CONTACTS_PER_WORLD * 6 + model.nv)  # ≤ 6 rows a contact

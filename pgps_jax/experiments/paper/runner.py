@@ -284,8 +284,9 @@ _PHYSICS_FIELDS_ADDED = {"impl": "jax"}
 
 def physics_of(settings: dict, task: str) -> Optional[dict]:
     """The physics a cell's results were computed on (`MjxEnv.settings`; None for an env
-    without MJX physics): as its settings record it, or, for a cell from before they did, the
-    task's physics of then with the cell's `--env` arguments."""
+    without MJX physics): as its settings record it (fields added since at
+    `_PHYSICS_FIELDS_ADDED`), or, for a cell from before they did, the task's physics of then
+    with the cell's `--env` arguments."""
     if "physics" in settings:
         recorded = settings["physics"]
         return None if recorded is None else {**_PHYSICS_FIELDS_ADDED, **recorded}
