@@ -8,6 +8,7 @@ installed).
 
 import contextlib
 import dataclasses
+import functools
 import sys
 
 from typing import Optional
@@ -239,14 +240,22 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
     """
     on_gpu = default_platform() == "gpu"
     if model.impl == mjx.Impl.WARP:
-        return jax.lax.fori_loop(0, n_frames, lambda _, d: mjx.step(model, d), data,
-                                 unroll=on_gpu)
+        step = functools.partial(mjx.step, model)
+    else:
+        step = _rewritten_step(model, on_gpu, write_out_linalg, unroll_line_search,
+                               unroll_solver)
+    return jax.lax.fori_loop(0, n_frames, lambda _, d: step(d), data, unroll=on_gpu)
+
+
+def _rewritten_step(model: mjx.Model, on_gpu: bool, write_out_linalg: Optional[bool],
+                    unroll_line_search: Optional[bool], unroll_solver: Optional[bool]):
+    """MJX's JAX physics step with the `mjx_rewrites` switched on or off (None: `Physics`'s
+    defaults for the platform)."""
     if write_out_linalg is None:
         write_out_linalg = on_gpu and model.nv <= small_linalg.MAX_SIZE
     if unroll_line_search is None:
         unroll_line_search = on_gpu
     if unroll_solver is None:
         unroll_solver = on_gpu
-    step = mjx_rewrites.physics_step(model, write_out_linalg, unroll_line_search,
+    return mjx_rewrites.physics_step(model, write_out_linalg, unroll_line_search,
                                      unroll_solver)
-    return jax.lax.fori_loop(0, n_frames, lambda _, d: step(d), data, unroll=on_gpu)
