@@ -42,7 +42,8 @@ from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import ALL_TASKS, make_env
 from pgps_jax.experiments.paper.runner import env_physics, physics_of
-from pgps_jax.experiments.paper.side_by_side import placements
+from pgps_jax.experiments.paper.side_by_side import (MEMORY_FRACTION_OLD, memory_share,
+                                                     placements)
 
 SETTINGS = {
     "sac": dict(episode_length=1000, num_envs=64, num_eval_envs=16, batch_size=256,
@@ -158,14 +159,16 @@ def done_seeds(directory: pathlib.Path, task: str, seeds: list[int], settings: d
     return done
 
 
-def run_concurrently(argv: list[str], seeds: list[int], concurrent: int) -> list[str]:
+def run_concurrently(argv: list[str], seeds: list[int], concurrent: int,
+                     memory: float) -> list[str]:
     """Runs each of `seeds` as this command with `--seed k`, `concurrent` at a time in processes
-    of their own; returns what the failed ones said (their last lines of stderr). The children
-    end with this command, however it ends."""
+    of their own, dividing the `memory` share of each GPU's memory (`memory_share`); returns
+    what the failed ones said (their last lines of stderr). The children end with this
+    command, however it ends."""
     slots = placements(min(concurrent, len(seeds)), jax.default_backend(),
-                       jax.local_device_count(), os.environ.get("CUDA_VISIBLE_DEVICES"))
+                       jax.local_device_count(), os.environ.get("CUDA_VISIBLE_DEVICES"), memory)
     inherited = {k: v for k, v in os.environ.items()
-                 if k not in ("XLA_PYTHON_CLIENT_MEM_FRACTION", "XLA_PYTHON_CLIENT_PREALLOCATE")}
+                 if k not in (MEMORY_FRACTION_OLD, "XLA_PYTHON_CLIENT_PREALLOCATE")}
     waiting, running, failures = list(seeds), {}, []
     terminate = signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     try:
@@ -253,11 +256,12 @@ def main(argv=None):
         parser.error(f"--env {' '.join(args.env)}: {e}")
     try:
         done = done_seeds(directory, args.task, seeds, settings)
+        memory = memory_share(os.environ)
     except UsageError as e:
         parser.error(str(e))
     to_run = [seed for seed in seeds if seed not in done]
     if args.concurrent > 1 and len(to_run) > 1:
-        failures = run_concurrently(argv, to_run, args.concurrent)
+        failures = run_concurrently(argv, to_run, args.concurrent, memory)
         if failures:
             print(f"error: {len(failures)} seed(s) failed: " + "; ".join(failures),
                   file=sys.stderr)

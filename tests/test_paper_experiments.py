@@ -300,6 +300,19 @@ def test_slots_are_placed_on_the_gpus_in_turn():
     assert side_by_side.placements(2, "cpu", 1, None) == [{}, {}]
 
 
+def test_slots_divide_the_commands_own_share_of_a_gpu():
+    """A command given a memory fraction of its own (to leave room for other processes on the
+    GPU) divides that among its slots, under either of JAX's names; a bad one is refused."""
+    assert side_by_side.memory_share({}) == side_by_side.MEMORY_IN_USE
+    assert side_by_side.memory_share({"XLA_CLIENT_MEM_FRACTION": "0.6"}) == 0.6
+    assert side_by_side.memory_share({"XLA_PYTHON_CLIENT_MEM_FRACTION": "0.45"}) == 0.45
+    three = side_by_side.placements(3, "gpu", 1, None, memory=0.6)
+    assert [p[side_by_side.MEMORY_FRACTION] for p in three] == ["0.200"] * 3
+    for bad in ("0", "1.5", "half"):
+        with pytest.raises(UsageError, match=r"XLA_CLIENT_MEM_FRACTION.*\(0, 1\]"):
+            side_by_side.memory_share({"XLA_CLIENT_MEM_FRACTION": bad})
+
+
 def test_seeds_are_split_over_the_devices(tmp_path):
     """Three seeds on two (host) devices: a batch of four, the fourth dropped."""
     env = {**os.environ, "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")

@@ -106,7 +106,8 @@ def _run_side_by_side(experiment: str, out: pathlib.Path, budget: Budget, chosen
     import jax
     slots = side_by_side.placements(min(concurrent, len(chosen)), jax.default_backend(),
                                     jax.local_device_count(),
-                                    environ.get("CUDA_VISIBLE_DEVICES"))
+                                    environ.get("CUDA_VISIBLE_DEVICES"),
+                                    side_by_side.memory_share(environ))
     reached = {}
     with tqdm(total=budget.steps * budget.seeds * len(chosen), unit="step", unit_scale=True,
               disable=not progress, desc=f"{experiment}: {len(chosen)} cells, "

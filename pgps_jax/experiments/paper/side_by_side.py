@@ -3,7 +3,7 @@
 One cell's generation is a chain of small kernels that leaves a GPU mostly idle; several cells
 in separate processes fill it (better still under CUDA's MPS daemon, which lets their kernels
 run at once). With `concurrent` slots over G visible GPUs, slot s runs its cells on GPU
-s mod G, the slots placed on a GPU sharing `MEMORY_IN_USE` of its memory equally; on a CPU
+s mod G, the slots placed on a GPU sharing `memory_share` of its memory equally; on a CPU
 every slot uses the host. A cell in a process of its own computes what it computes in the
 command's own process (same seed, same machine, same result).
 
@@ -23,30 +23,50 @@ import sys
 import threading
 from typing import Callable, Optional, Sequence
 
-from pgps_jax.cli.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RunFailed, report
+from pgps_jax.cli.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RunFailed, UsageError,
+                                  report)
 from pgps_jax.experiments.paper.grid import Cell
 from pgps_jax.experiments.paper.runner import RESULT, Budget, run_cell
 
 MEMORY_IN_USE = 0.9
-"""The share of a GPU's memory that the processes placed on it take in all."""
+"""The share of a GPU's memory that the processes placed on it take in all, unless the
+command is given a share of its own (`memory_share`)."""
 MEMORY_FRACTION = "XLA_CLIENT_MEM_FRACTION"
 """JAX's variable of a process's share of its GPU's memory (its older name, which it refuses
 beside this one, is dropped from the children's environment)."""
+MEMORY_FRACTION_OLD = "XLA_PYTHON_CLIENT_MEM_FRACTION"
 PROGRESS = b"pgps-progress "
 """The prefix of a child's progress lines: a JSON object of generation and env steps."""
 
 
-def placements(concurrent: int, platform: str, devices: int,
-               visible: Optional[str]) -> list[dict]:
+def memory_share(environ: dict) -> float:
+    """The share of each GPU's memory that the slots placed on it divide between them: the
+    command's own, where its environment sets JAX's memory fraction (`MEMORY_FRACTION` or
+    its older name, to leave room for other processes on the GPUs), else `MEMORY_IN_USE`."""
+    for name in (MEMORY_FRACTION, MEMORY_FRACTION_OLD):
+        if name in environ:
+            try:
+                share = float(environ[name])
+            except ValueError:
+                share = math.nan
+            if not 0 < share <= 1:
+                raise UsageError(f"{name}={environ[name]!r}: the share of each GPU's memory that "
+                                 "the processes side by side divide is a number in (0, 1]")
+            return share
+    return MEMORY_IN_USE
+
+
+def placements(concurrent: int, platform: str, devices: int, visible: Optional[str],
+               memory: float = MEMORY_IN_USE) -> list[dict]:
     """Per slot, the environment variables that place its processes: on a GPU machine, the
-    one GPU it sees (of CUDA_VISIBLE_DEVICES `visible`, or all) and its share of that GPU's
-    memory; none elsewhere."""
+    one GPU it sees (of CUDA_VISIBLE_DEVICES `visible`, or all) and its equal part of the
+    `memory` share of that GPU's memory (`memory_share`); none elsewhere."""
     if platform != "gpu":
         return [{} for _ in range(concurrent)]
     ids = visible.split(",") if visible else [str(i) for i in range(devices)]
     per_gpu = math.ceil(concurrent / len(ids))
     return [{"CUDA_VISIBLE_DEVICES": ids[slot % len(ids)],
-             MEMORY_FRACTION: f"{MEMORY_IN_USE / per_gpu:.3f}"}
+             MEMORY_FRACTION: f"{memory / per_gpu:.3f}"}
             for slot in range(concurrent)]
 
 
@@ -63,7 +83,7 @@ def run_side_by_side(experiment: str, budget: Budget, cells: Sequence[Cell],
     queue = jobs[len(slots):]  # slot s starts cell s, then takes the next as it comes free
     results, failures, children = [None] * len(cells), [], []
     lock, stopping = threading.Lock(), threading.Event()
-    inherited = {k: v for k, v in environ.items() if k != "XLA_PYTHON_CLIENT_MEM_FRACTION"}
+    inherited = {k: v for k, v in environ.items() if k != MEMORY_FRACTION_OLD}
 
     def work(slot: dict, job) -> None:
         while job is not None:
