@@ -162,11 +162,16 @@ def test_a_run_is_labelled_with_what_it_changed_from_its_cell_s_configuration():
     def result(config, env):
         return {"settings": {"config": config, "env": env}}
     assert report.run_label(cell.config, result(as_run, {}), cell) == "ours: without_ea_guidance"
-    changed = {**as_run, "resample_before_q_filter": False, "actor_hidden": [16]}
+    changed = {**as_run, "resample_before_q_filter": True, "actor_hidden": [16]}
     assert report.run_label(cell.config, result(changed, {"iterations": 4}), cell) == (
-        "ours: without_ea_guidance (actor_hidden=[16], resample_before_q_filter=false, "
+        "ours: without_ea_guidance (actor_hidden=[16], resample_before_q_filter=true, "
         "iterations=4)")
     assert report.run_label("brax_sac", {"final": {}}, None) == "ours: brax_sac"
+    # without Q-filtering the population is sampled every generation whatever the switch says
+    td3 = Cell("hopper", "td3", {}, "td3")
+    inert = json.loads(json.dumps(dataclasses.asdict(
+        for_task("hopper", "td3", resample_before_q_filter=True))))
+    assert report.run_label(td3.config, result(inert, {}), td3) == "ours: td3"
 
 
 def test_a_run_on_an_earlier_physics_of_its_task_is_labelled_with_it():

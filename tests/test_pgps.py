@@ -164,8 +164,10 @@ def test_the_two_phases_compute_one_generation_step():
 
 
 def test_population_layout_and_counters():
-    agent, init, _ = programs(SMALL)
-    state = init(jax.random.PRNGKey(0))
+    """Resampled from the first generation, so that elitism acts from the first; on this
+    key the best actor is not slot 0's, so the elite's return to slot 0 is seen."""
+    agent, init, _ = programs(SMALL.replace(resample_before_q_filter=True))
+    state = init(jax.random.PRNGKey(2))
     play, learn = jax.jit(agent.play), jax.jit(agent.learn)
     elite_before = np.asarray(state.cem.elite)
     state, played = play(state)
@@ -181,6 +183,7 @@ def test_population_layout_and_counters():
     # elitism: the last elite plays in slot 0; the new elite is the best actor that played
     np.testing.assert_array_equal(population[0], elite_before)
     returns = [float(metrics[f"pop/return_{i}"]) for i in range(SMALL.pop_size)]
+    assert int(np.argmax(returns)) != 0
     np.testing.assert_array_equal(np.asarray(new.cem.elite), population[int(np.argmax(returns))])
     assert float(metrics["cem/elite_return"]) == max(returns)
     _, next_played = play(new)
@@ -190,9 +193,10 @@ def test_population_layout_and_counters():
 
 @pytest.mark.parametrize("period", [1, 2])
 def test_a_kept_population_plays_until_q_filtering_starts(period):
-    """resample_before_q_filter=False (the authors' code): the population drawn at the start
-    (μ in slot 0) plays every generation, the TD3 actor in slot N−1 from its first turn on,
-    while μ and Σ move; once Q-filtering starts the population is the elite and new samples."""
+    """resample_before_q_filter=False (the default, the authors' code): the population drawn
+    at the start (μ in slot 0) plays every generation, the TD3 actor in slot N−1 from its first
+    turn on, while μ and Σ move; once Q-filtering starts the population is the elite and new
+    samples."""
     config = SMALL.replace(resample_before_q_filter=False, td3_to_cem_period=period)
     agent, init, _ = programs(config)
     play, learn = jax.jit(agent.play), jax.jit(agent.learn)
@@ -217,8 +221,8 @@ def test_a_kept_population_plays_until_q_filtering_starts(period):
     assert not np.any(np.all(population[1:n - 1, None] == kept[None], axis=-1))
 
 
-def test_the_paper_resamples_every_generation():
-    agent, init, _ = programs(SMALL)
+def test_algorithm_1_as_written_resamples_every_generation():
+    agent, init, _ = programs(SMALL.replace(resample_before_q_filter=True))
     state = init(jax.random.PRNGKey(0))
     assert state.kept_population is None
     play, learn = jax.jit(agent.play), jax.jit(agent.learn)
@@ -229,9 +233,19 @@ def test_the_paper_resamples_every_generation():
                              == np.asarray(first.population)[None], axis=-1))
 
 
-def test_a_kept_population_needs_the_q_filter():
-    with pytest.raises(ValueError, match="resample_before_q_filter"):
-        SMALL.replace(resample_before_q_filter=False, q_filter=False)
+def test_without_q_filtering_the_population_is_sampled_every_generation():
+    """The authors' code keeps its first draws only when run with Q-filtering."""
+    config = SMALL.replace(resample_before_q_filter=False, q_filter=False)
+    assert not config.keeps_population
+    agent, init, _ = programs(config)
+    state = init(jax.random.PRNGKey(0))
+    assert state.kept_population is None
+    play, learn = jax.jit(agent.play), jax.jit(agent.learn)
+    state, first = play(state)
+    state, _ = learn(state, first)
+    _, second = play(state)
+    assert not np.any(np.all(np.asarray(second.population)[1:-1, None]
+                             == np.asarray(first.population)[None], axis=-1))
 
 
 def test_base_model_never_injects_or_guides():

@@ -5,7 +5,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from pgps_jax.agent.config import EvaluationConfig, for_task
+from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, for_task
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.cli.run_config import (CONFIG_DIR, IDENTITY_KEYS, PGPS_FIELDS,
                                  check_overrides, differences, env_choices, explicitly_set,
@@ -161,3 +161,34 @@ def test_a_budget_within_the_warm_up_is_refused_before_anything_is_written(tmp_p
     assert (f"total_steps={total_steps} does not exceed the random warm-up "
             "(pgps.warmup_steps=200)") in str(err.value)
     assert not run_dir.exists()
+
+
+def test_a_checkpoint_from_before_the_kept_population_resumes_resampling():
+    """Runs saved before `resample_before_q_filter` existed sampled their population every
+    generation; resumed, they go on doing so, although the default now keeps it; a field
+    added with the behaviour from before it takes its default."""
+    from pgps_jax.cli.plan import _with_new_fields
+    completed = _with_new_fields({"algo": {"name": "pgps"}, "pgps": {"pop_size": 6}})["pgps"]
+    assert completed["resample_before_q_filter"] is True
+    assert PGPSConfig().resample_before_q_filter is False
+    assert completed["pop_size"] == 6
+    assert completed["fell_behind_rule"] == PGPSConfig().fell_behind_rule
+
+
+def test_a_switch_without_effect_does_not_stop_a_checkpoint_from_resuming():
+    """A TD3 checkpoint saved when `resample_before_q_filter` defaulted to true resumes under
+    today's default: without Q-filtering the switch does nothing. PGPS's is compared."""
+    import dataclasses
+    from pgps_jax.cli.plan import _comparable
+    from pgps_jax.cli.run_config import differences
+
+    def settings(algo, **changes):
+        return {"pgps": dataclasses.asdict(for_task("hopper", algo, **changes))}
+    keys = [f"pgps.{f.name}" for f in dataclasses.fields(PGPSConfig)]
+    old, now = settings("td3", resample_before_q_filter=True), settings("td3")
+    assert differences(old, now, keys) == [
+        "pgps.resample_before_q_filter: checkpoint True, now False"]
+    assert differences(_comparable(old), _comparable(now), keys) == []
+    assert differences(_comparable(settings("pgps", resample_before_q_filter=True)),
+                       _comparable(settings("pgps")), keys) == [
+        "pgps.resample_before_q_filter: checkpoint True, now False"]

@@ -32,9 +32,10 @@ def _seed(tree, i):
 
 def _same(a, b) -> None:
     """Equal to float tolerance: the waiting programs are other programs, whose fusions may
-    round differently."""
+    round differently (by about 1e-6 in parameters of order 0.01–0.3 after a few
+    generations)."""
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
-        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-5)
 
 
 def _unchanged(a, b) -> None:

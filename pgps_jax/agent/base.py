@@ -42,8 +42,8 @@ class TrainState:
     buffer: replay.BufferState | None = None  # device replay buffer
     beta: jax.Array | None = None        # [] distance weight β of L^A (eq. 2-3), persists
     kept_population: jax.Array | None = None
-    """[N, P] the population kept until Q-filtering starts (PGPS with
-    `resample_before_q_filter` off; None: resampled every generation)."""
+    """[N, P] the population kept until Q-filtering starts (PGPS by default,
+    `PGPSConfig.keeps_population`; None: resampled every generation)."""
     next_population: jax.Array | None = None
     """[N, P] the population the next generation plays, drawn (and half of it trained) at
     the end of this one (CEM-RL)."""

@@ -14,6 +14,9 @@ BETA_ADAPTED = ("before_block", "after_block")
 ALGORITHMS = ("pgps", "cem", "td3", "cemrl")
 """PGPS and the baselines built from its parts (`pgps_jax.agent.algorithms`)."""
 
+VALUES_BEFORE_ADDED = {"resample_before_q_filter": True}
+"""The values that runs saved before these PGPSConfig fields existed ran under, where that is
+not the field's default (the population was sampled every generation)."""
 
 @dataclasses.dataclass(frozen=True)
 class PGPSConfig:
@@ -33,7 +36,8 @@ class PGPSConfig:
     cem_divide_by_k: bool = True
     """Divide the weighted variance term by K, as the authors' (CEM-RL derived) code does."""
     elitism: bool = True
-    """The last generation's elite plays again in slot 0 (Algorithm 1; off in CEM-RL)."""
+    """The last generation's elite plays again in slot 0 (Algorithm 1; off in CEM-RL), once
+    the population is sampled (with `keeps_population`, from the start of Q-filtering)."""
 
     # --- networks (Table 2) ---
     actor_hidden: Tuple[int, ...] = (400, 300)
@@ -115,11 +119,12 @@ class PGPSConfig:
     """SR: M = ⌊SR·N⌋ candidates are scored by the critic."""
     ss1_size: int = 64
     """SS_1: states on which each candidate's Q is averaged."""
-    resample_before_q_filter: bool = True
-    """Sample the population from N(μ, Σ) every generation (Algorithm 1). False: keep the
-    population drawn at the start (μ and N−1 samples; the TD3 actor takes slot N−1 on its
-    turns) until Q-filtering starts, while μ and Σ still update, as the authors' code does when
-    run with Q-filtering (its population is resampled only by the Q-filter)."""
+    resample_before_q_filter: bool = False
+    """True: sample the population from N(μ, Σ) every generation from the first (the text of
+    Algorithm 1). False (what the authors' code runs, and the paper's results come from): keep
+    the population drawn at the start (μ and N−1 samples; the TD3 actor takes slot N−1 on its
+    turns) until Q-filtering starts, while μ and Σ still update. Without Q-filtering it has no
+    effect: the population is sampled every generation, as in the authors' code."""
 
     # --- increasing evaluation steps (eq. 4) ---
     t_init: int = 400
@@ -148,6 +153,12 @@ class PGPSConfig:
     def num_elite_filtered(self) -> int:
         """Population slots [N/2, N) that Q-critic filtering fills."""
         return self.pop_size - self.pop_size // 2
+
+    @property
+    def keeps_population(self) -> bool:
+        """Whether the population drawn at the start is kept until Q-filtering starts
+        (`resample_before_q_filter` off, with Q-filtering on)."""
+        return self.q_filter and not self.resample_before_q_filter
 
     @property
     def num_candidates(self) -> int:
@@ -241,6 +252,16 @@ class EvaluationConfig:
                                  "positive integer")
 
 
+def effective_fields(fields: dict) -> dict:
+    """A PGPSConfig's fields (as `dataclasses.asdict` gives them) less those that cannot act
+    under the others' values, so that two configurations running the same algorithm compare
+    equal: `resample_before_q_filter` without Q-filtering."""
+    if fields.get("q_filter", True):
+        return dict(fields)
+    return {name: value for name, value in fields.items()
+            if name != "resample_before_q_filter"}
+
+
 def _require(ok: bool, field: str, value, valid: str) -> None:
     if not ok:
         raise ValueError(f"PGPSConfig.{field}={value!r} is invalid: must be {valid}")
@@ -278,9 +299,6 @@ def _validate(c: PGPSConfig) -> None:
     _require(c.beta_adapted in BETA_ADAPTED, "beta_adapted", c.beta_adapted,
              f"one of {', '.join(BETA_ADAPTED)}")
     _require(c.t_init <= c.t_max, "t_init", c.t_init, f"<= t_max={c.t_max}")
-    _require(c.resample_before_q_filter or c.q_filter, "resample_before_q_filter",
-             c.resample_before_q_filter, "true when q_filter is false (the population kept "
-             "from the start is replaced only by Q-filtering)")
     _require(c.num_candidates >= c.num_elite_filtered, "sample_ratio", c.sample_ratio,
              f"large enough that SR·N = {c.num_candidates} candidates >= the "
              f"{c.num_elite_filtered} population slots Q-filtering fills")

@@ -6,9 +6,9 @@ are held by the agent, so `agent.generation_step(state)` is one pure function th
 jits (state donated), vmaps over a batch of states (seeds) or scans over generations.
 
 One generation (Algorithm 1, lines 6-37):
- 1. population: slot 0 = elite, the rest ~ N(μ, Σ) (or, with `resample_before_q_filter`
-    off, the population drawn at the start, as the authors' code keeps it, until
-    Q-filtering starts); after T_start-Q total steps the slots
+ 1. population: slot 0 = elite, the rest ~ N(μ, Σ) (by default, as the authors' code runs
+    it, the population drawn at the start until Q-filtering starts:
+    `resample_before_q_filter`); after T_start-Q total steps the slots
     [N/2, N) are the best of SR·N samples by the critic (Algorithm 2); every F generations the
     TD3 actor takes slot N−1 (PG→EA).
  2. every actor plays one episode of at most T steps (eq. 4); real transitions enter the buffer.
@@ -99,9 +99,8 @@ class PGPS(Agent):
         buffer, total_steps = self.random_warmup(warmup_key)
         mean = flatten(td3_state.actor)
         search = cem.init(mean, config.sigma_init)
-        kept = (None if config.resample_before_q_filter
-                else cem.ask(jax.random.fold_in(key, 1), search, config.pop_size)
-                .at[0].set(mean))
+        kept = (cem.ask(jax.random.fold_in(key, 1), search, config.pop_size).at[0].set(mean)
+                if config.keeps_population else None)
         return TrainState(cem=search,
                           td3=td3_state, buffer=buffer,
                           beta=jnp.asarray(config.beta_init, jnp.float32),

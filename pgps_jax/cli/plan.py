@@ -6,7 +6,7 @@ import dataclasses
 import sys
 from typing import Any, Mapping, Optional, Sequence
 
-from pgps_jax.agent.config import PGPSConfig
+from pgps_jax.agent.config import VALUES_BEFORE_ADDED, PGPSConfig, effective_fields
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.cli.run_config import (IDENTITY_KEYS, RunSettings, differences, explicitly_set,
@@ -50,16 +50,24 @@ def _checkpointed_config(directory: rundir.RunDir) -> tuple[int, dict]:
 
 
 def _with_new_fields(saved: dict) -> dict:
-    """A checkpoint's configuration with the settings added since it was written set to their
-    defaults (each new default keeps the behaviour from before it: PGPS, the PGPSConfig
-    fields' defaults)."""
+    """A checkpoint's configuration with the settings added since it was written set to the
+    behaviour from before them: PGPS, the PGPSConfig fields' defaults, or their values
+    before they were added where the default differs (`VALUES_BEFORE_ADDED`; such a
+    checkpoint resumes by directory, or with resume=true and the old value set)."""
     saved = copy.deepcopy(saved)
     saved.setdefault("algo", {"name": "pgps"})
-    defaults = {f.name: f.default for f in dataclasses.fields(PGPSConfig)}
+    defaults = {f.name: VALUES_BEFORE_ADDED.get(f.name, f.default)
+                for f in dataclasses.fields(PGPSConfig)}
     pgps = saved.setdefault("pgps", {})
     for name, value in defaults.items():
         pgps.setdefault(name, list(value) if isinstance(value, tuple) else value)
     return saved
+
+
+def _comparable(values: dict) -> dict:
+    """A run's settings with the PGPSConfig fields that cannot act under the others left out
+    (`effective_fields`), for comparing a checkpoint's with the command's."""
+    return {**values, "pgps": effective_fields(values.get("pgps", {}))}
 
 
 def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
@@ -119,7 +127,7 @@ def _plan_resume(run: RunSettings, config: PGPSConfig, values: dict, overrides: 
             if explicitly_set(key, explicit):
                 _set(effective, key, value)
         effective["resume"], effective["run_dir"] = run.resume, str(directory.path)
-    diffs = differences(saved, effective, IDENTITY_KEYS)
+    diffs = differences(_comparable(saved), _comparable(effective), IDENTITY_KEYS)
     if diffs:
         raise UsageError(
             f"the checkpoint in {directory.checkpoints} was made with a different "

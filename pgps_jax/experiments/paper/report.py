@@ -24,7 +24,7 @@ from typing import Optional
 import jax
 import numpy as np
 
-from pgps_jax.agent.config import for_task
+from pgps_jax.agent.config import VALUES_BEFORE_ADDED, effective_fields, for_task
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.experiments.paper.grid import Cell, cells
@@ -136,9 +136,10 @@ def run_label(config: str, result: Optional[dict], cell: Optional[Cell]) -> str:
     settings = (result or {}).get("settings")
     if cell is None or settings is None:
         return f"ours: {config}"
-    grid_config = json.loads(json.dumps(dataclasses.asdict(
-        for_task(cell.task, cell.algo, **dict(cell.overrides)))))
-    changed = {name: value for name, value in settings["config"].items()
+    grid_config = effective_fields(json.loads(json.dumps(dataclasses.asdict(
+        for_task(cell.task, cell.algo, **dict(cell.overrides))))))
+    as_run = effective_fields({**VALUES_BEFORE_ADDED, **settings["config"]})
+    changed = {name: value for name, value in as_run.items()
                if name in grid_config and value != grid_config[name]}
     changed.update(settings.get("env", {}))
     physics = physics_of(settings, cell.task)
