@@ -172,6 +172,10 @@ def test_a_run_is_labelled_with_what_it_changed_from_its_cell_s_configuration():
     inert = json.loads(json.dumps(dataclasses.asdict(
         for_task("hopper", "td3", resample_before_q_filter=True))))
     assert report.run_label(td3.config, result(inert, {}), td3) == "ours: td3"
+    # a cell saved before the switch existed was resampled
+    older = {k: v for k, v in as_run.items() if k != "resample_before_q_filter"}
+    assert report.run_label(cell.config, result(older, {}), cell) == (
+        "ours: without_ea_guidance (resample_before_q_filter=true)")
 
 
 def test_a_run_on_an_earlier_physics_of_its_task_is_labelled_with_it():

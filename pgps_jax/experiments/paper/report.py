@@ -138,7 +138,10 @@ def run_label(config: str, result: Optional[dict], cell: Optional[Cell]) -> str:
         return f"ours: {config}"
     grid_config = effective_fields(json.loads(json.dumps(dataclasses.asdict(
         for_task(cell.task, cell.algo, **dict(cell.overrides))))))
-    as_run = effective_fields({**VALUES_BEFORE_ADDED, **settings["config"]})
+    as_run = dict(settings["config"])
+    for name, value in VALUES_BEFORE_ADDED.items():  # a cell from before the field existed
+        as_run.setdefault(name, value)
+    as_run = effective_fields(as_run)
     changed = {name: value for name, value in as_run.items()
                if name in grid_config and value != grid_config[name]}
     changed.update(settings.get("env", {}))
