@@ -273,10 +273,10 @@ _ADDED_SETTINGS = {"env": {}, "algo": "pgps"}
 _ADDED_CONFIG_FIELDS = ("elitism", "policy_delay", "exploration_noise")
 """PGPSConfig fields that cells started before they existed ran under at their defaults."""
 _PHYSICS_BEFORE_RECORDED = {"halfcheetah": {"iterations": 1}, "walker2d": {"iterations": 1},
-                            "ant": {"iterations": 2}}
+                            "ant": {"iterations": 2, "ls_iterations": 4}}
 """The fields in which a task's physics differed from today's when cells did not record it
-yet (the Newton iterations of halfcheetah, walker2d and ant; the ant's results from before
-its Gym physics are not cells)."""
+yet (the Newton iterations of halfcheetah, walker2d and ant, and the ant's line search; the
+ant's results from before its Gym physics are not cells)."""
 
 
 _PHYSICS_FIELDS_ADDED = {"impl": "jax"}
