@@ -221,21 +221,14 @@ def test_a_kept_population_plays_until_q_filtering_starts(period):
     assert not np.any(np.all(population[1:n - 1, None] == kept[None], axis=-1))
 
 
-def test_algorithm_1_as_written_resamples_every_generation():
-    agent, init, _ = programs(SMALL.replace(resample_before_q_filter=True))
-    state = init(jax.random.PRNGKey(0))
-    assert state.kept_population is None
-    play, learn = jax.jit(agent.play), jax.jit(agent.learn)
-    state, first = play(state)
-    state, _ = learn(state, first)
-    _, second = play(state)
-    assert not np.any(np.all(np.asarray(second.population)[1:-1, None]
-                             == np.asarray(first.population)[None], axis=-1))
-
-
-def test_without_q_filtering_the_population_is_sampled_every_generation():
-    """The authors' code keeps its first draws only when run with Q-filtering."""
-    config = SMALL.replace(resample_before_q_filter=False, q_filter=False)
+@pytest.mark.parametrize("changes", [
+    dict(resample_before_q_filter=True),                    # Algorithm 1 as written
+    dict(resample_before_q_filter=False, q_filter=False),   # the authors' code without Q-filter
+])
+def test_the_population_is_sampled_every_generation(changes):
+    """Resampled from the first generation, as Algorithm 1 is written; the authors' code
+    keeps its first draws only when run with Q-filtering."""
+    config = SMALL.replace(**changes)
     assert not config.keeps_population
     agent, init, _ = programs(config)
     state = init(jax.random.PRNGKey(0))
