@@ -262,6 +262,19 @@ def effective_fields(fields: dict) -> dict:
             if name != "resample_before_q_filter"}
 
 
+def saved_fields_as_run(saved: dict, added_at_default: Tuple[str, ...] = ()) -> dict:
+    """The fields of a PGPSConfig saved by an earlier version as its run ran them: those it
+    lacks of `added_at_default` at their defaults and of `VALUES_BEFORE_ADDED` at those
+    values, then `effective_fields` (its own fields keep their order)."""
+    fields = dict(saved)
+    for f in dataclasses.fields(PGPSConfig):
+        if f.name in added_at_default:
+            fields.setdefault(f.name, f.default)
+    for name, value in VALUES_BEFORE_ADDED.items():
+        fields.setdefault(name, value)
+    return effective_fields(fields)
+
+
 def _require(ok: bool, field: str, value, valid: str) -> None:
     if not ok:
         raise ValueError(f"PGPSConfig.{field}={value!r} is invalid: must be {valid}")

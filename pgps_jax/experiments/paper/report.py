@@ -24,7 +24,7 @@ from typing import Optional
 import jax
 import numpy as np
 
-from pgps_jax.agent.config import VALUES_BEFORE_ADDED, effective_fields, for_task
+from pgps_jax.agent.config import effective_fields, for_task, saved_fields_as_run
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.experiments.paper.grid import Cell, cells
@@ -138,11 +138,7 @@ def run_label(config: str, result: Optional[dict], cell: Optional[Cell]) -> str:
         return f"ours: {config}"
     grid_config = effective_fields(json.loads(json.dumps(dataclasses.asdict(
         for_task(cell.task, cell.algo, **dict(cell.overrides))))))
-    as_run = dict(settings["config"])
-    for name, value in VALUES_BEFORE_ADDED.items():  # a cell from before the field existed
-        as_run.setdefault(name, value)
-    as_run = effective_fields(as_run)
-    changed = {name: value for name, value in as_run.items()
+    changed = {name: value for name, value in saved_fields_as_run(settings["config"]).items()
                if name in grid_config and value != grid_config[name]}
     changed.update(settings.get("env", {}))
     physics = physics_of(settings, cell.task)

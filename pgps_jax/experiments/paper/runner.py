@@ -40,8 +40,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from pgps_jax.agent.algorithms import make_agent
-from pgps_jax.agent.config import (VALUES_BEFORE_ADDED, EvaluationConfig, PGPSConfig,
-                                   effective_fields, for_task)
+from pgps_jax.agent.config import (EvaluationConfig, effective_fields, for_task,
+                                   saved_fields_as_run)
 from pgps_jax.agent.metrics import Metric, population_return_key, returns_key
 from pgps_jax.cli import loop
 from pgps_jax.cli import run_dir as rundir
@@ -307,9 +307,7 @@ def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
     ignored = {"config"} | ({"devices"} if done else set())
     differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now" for key in now
               if key not in ignored and saved.get(key) != now[key]]
-    added = {**{f.name: f.default for f in dataclasses.fields(PGPSConfig)
-                if f.name in _ADDED_CONFIG_FIELDS}, **VALUES_BEFORE_ADDED}
-    saved_config = effective_fields({**added, **saved["config"]})
+    saved_config = saved_fields_as_run(saved["config"], _ADDED_CONFIG_FIELDS)
     differ += [f"config.{k}: {saved_config.get(k)!r} there, {v!r} now"
                for k, v in effective_fields(now["config"]).items()
                if saved_config.get(k) != v]
