@@ -106,21 +106,21 @@ def test_at_budget_keeps_the_records_up_to_the_generation_a_cell_continues_from(
             return state
 
     budget = runner.Budget(steps=500, seeds=2)
-    first = runner.AtBudget.read(tmp_path, budget.seeds, 0)
-    first.record(1, np.array([400, 300]), np.zeros((2, 3, 4)), Agent(), budget, tmp_path)
-    assert not (tmp_path / runner.AT_BUDGET).exists()
-    first.record(2, np.array([520, 450]), np.ones((2, 3, 4)), Agent(), budget, tmp_path)
-    continued = runner.AtBudget.read(tmp_path, budget.seeds, 2)
-    continued.record(3, np.array([560, 510]), np.full((2, 3, 4), 2.0), Agent(), budget,
-                     tmp_path)
+    path = tmp_path / runner.AT_BUDGET
+    first = runner.AtBudget.read(path, budget.seeds, 0)
+    first.record(1, np.array([400, 300]), np.zeros((2, 3, 4)), Agent(), budget, path)
+    assert not path.exists()
+    first.record(2, np.array([520, 450]), np.ones((2, 3, 4)), Agent(), budget, path)
+    continued = runner.AtBudget.read(path, budget.seeds, 2)
+    continued.record(3, np.array([560, 510]), np.full((2, 3, 4), 2.0), Agent(), budget, path)
     assert continued.steps.tolist() == [520, 510]
     sharding = jax.sharding.SingleDeviceSharding(jax.devices()[0])
     actors = np.asarray(continued.actors_of(np.full((2, 3, 4), 3.0), Agent(), sharding))
     np.testing.assert_array_equal(actors, np.stack([np.ones((3, 4)), np.full((3, 4), 2.0)]))
     # from the checkpoint of generation 2 again: seed 2's record (generation 3) is made anew
-    again = runner.AtBudget.read(tmp_path, budget.seeds, 2)
+    again = runner.AtBudget.read(path, budget.seeds, 2)
     assert again.steps.tolist() == [520, 0] and again.actors[1] is None
-    assert runner.AtBudget.read(tmp_path, budget.seeds, 0).actors == [None, None]
+    assert runner.AtBudget.read(path, budget.seeds, 0).actors == [None, None]
 
 
 def test_a_done_cell_is_not_run_again(uninterrupted):
@@ -251,18 +251,71 @@ def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninter
                     == (out / "figure4" / "hopper" / "pgps" / name).read_bytes())
 
 
-def test_cells_side_by_side_compute_what_they_compute_in_turn(uninterrupted, tmp_path, cache):
-    """Two cells at a time, each in a process of its own: the cell that runs gives the
-    results of the in-turn run, byte for byte; the one that fails is named, after the other
-    has finished."""
-    out, (result,) = uninterrupted
+IN_PARTS = dataclasses.replace(BUDGET, seeds_per_program=1)
+
+
+@pytest.fixture(scope="module")
+def in_parts(tmp_path_factory):
+    """The cell's seeds in programs of one seed each, in turn; the second part cut off after
+    its third generation and continued from its checkpoint."""
+    out = tmp_path_factory.mktemp("paper_in_parts")
+    cell = out / "figure4" / "hopper" / "pgps"
+
+    def cut_off(generation, steps):
+        if generation == 3:
+            raise Stop
+    with pytest.raises(Stop):
+        runner.run_cell(HOPPER, cell, IN_PARTS, cut_off, runner.parts(IN_PARTS)[1])
+    assert (cell / "checkpoints_seeds2-2").is_dir() and not (cell / runner.RESULT).exists()
+    (result,) = command.run("figure4", out, IN_PARTS, tasks=["hopper"], configs=["pgps"],
+                            progress=False)
+    return out, result
+
+
+def test_a_cell_in_parts_keys_its_seeds_as_the_whole_cell_and_merges_their_results(
+        uninterrupted, in_parts):
+    """Each part runs its own seeds under the whole cell's keys (seed k's first evaluation,
+    of μ before any learning, is the whole cell's to float tolerance), writes their files
+    and its result, and the cell's result merges the parts'."""
+    assert runner.parts(IN_PARTS) == [runner.Seeds(1, 1, whole=False),
+                                      runner.Seeds(2, 1, whole=False)]
+    assert [p.suffix for p in runner.parts(dataclasses.replace(BUDGET, seeds=5,
+                                                               seeds_per_program=2))] == [
+        "_seeds1-2", "_seeds3-4", "_seeds5-5"]
+    assert runner.parts(dataclasses.replace(BUDGET, seeds_per_program=2)) == [
+        runner.Seeds(1, 2)]
+    (whole_out, _), (out, result) = uninterrupted, in_parts
+    cell, whole = (o / "figure4" / "hopper" / "pgps" for o in (out, whole_out))
+    assert result["seeds"] == [1, 2] and [p["seeds"] for p in result["parts"]] == [[1], [2]]
+    assert result["wall_s"] == pytest.approx(sum(p["wall_s"] for p in result["parts"]))
+    assert min(result["env_steps"]) >= BUDGET.steps
+    firsts = []
+    for seed in (1, 2):
+        part = json.loads((cell / f"result_seeds{seed}-{seed}.json").read_text())
+        assert part["seeds"] == [seed]
+        assert part["final"]["mu"] == [result["final"]["mu"][seed - 1]]
+        _, rows = read_csv(cell / runner.seed_file(seed))
+        _, whole_rows = read_csv(whole / runner.seed_file(seed))
+        first = [float(rows[0][f"Reward{i}"]) for i in (1, 2)]
+        np.testing.assert_allclose(first, [float(whole_rows[0][f"Reward{i}"]) for i in (1, 2)],
+                                   rtol=1e-4)
+        firsts.append(first)
+    assert firsts[0] != firsts[1]
+    assert not list(cell.glob("checkpoints*")) and not list(cell.glob("at_budget*"))
+
+
+def test_cells_side_by_side_compute_what_they_compute_in_turn(in_parts, tmp_path, cache):
+    """Programs in processes of their own, two at a time (the two parts of one cell, then a
+    cell that fails): the parts give the results of the in-turn run, byte for byte, its
+    cut-off part included; the cell that fails is named, after the others have finished."""
+    out, result = in_parts
     refused = tmp_path / "figure4" / "hopper" / "cemrl"
     refused.mkdir(parents=True)
     (refused / runner.RESULT).write_bytes(  # a result of another cell
         (out / "figure4" / "hopper" / "pgps" / runner.RESULT).read_bytes())
     same_platform = {**cli_env(cache), "JAX_PLATFORMS": os.environ.get("JAX_PLATFORMS", "")}
     with pytest.raises(RunFailed, match=r"1 cell\(s\) failed: hopper cemrl: .* other settings"):
-        command.run("figure4", tmp_path, BUDGET, tasks=["hopper"], configs=["pgps", "cemrl"],
+        command.run("figure4", tmp_path, IN_PARTS, tasks=["hopper"], configs=["pgps", "cemrl"],
                     progress=False, concurrent=2, child_environ=same_platform)
     _, rows = read_csv(tmp_path / "figure4" / command.FINAL_RETURNS)  # written all the same
     assert [(r["config"], r["seed"]) for r in rows] == [("pgps", "1"), ("pgps", "2")] * 2
@@ -272,7 +325,8 @@ def test_cells_side_by_side_compute_what_they_compute_in_turn(uninterrupted, tmp
         # a child sees one GPU, and GPU kernels need not repeat bit for bit across processes
         assert beside["seeds"] == result["seeds"] and np.all(np.isfinite(beside["final"]["mu"]))
         return
-    assert {**beside, "wall_s": 0} == {**result, "wall_s": 0}
+    timeless = lambda r: {**r, "wall_s": 0, "parts": [{**p, "wall_s": 0} for p in r["parts"]]}
+    assert timeless(beside) == timeless(result)
     for seed in (1, 2):
         for name in (runner.seed_file(seed), runner.seed_file(seed, "td3"),
                      f"seed{seed}_generations.csv"):
@@ -367,6 +421,7 @@ def test_the_grids_hold_the_paper_s_cells():
     (["figure4", "--eval", "often=3"], ["--eval 'often=3'", "every, episodes, steps"]),
     (["figure4", "--steps", "0"], ["--steps must be a positive integer"]),
     (["figure4", "--concurrent", "0"], ["--concurrent must be a positive integer"]),
+    (["figure4", "--seeds-per-program", "0"], ["--seeds-per-program must be a positive integer"]),
     (["figure4", "--env", "contacts=all"], ["--env 'contacts=all'", "floor_contacts"]),
     (["figure4", "--tasks", "ant", "--env", "floor_contacts=all"],
      ["--env: floor_contacts must be one of model, gym, got 'all'"]),

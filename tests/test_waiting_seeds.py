@@ -111,9 +111,9 @@ def test_programs_for_every_seed_refuse_a_choice_of_seeds():
 def test_a_seed_ahead_by_more_than_a_generation_or_at_its_budget_waits():
     budget = runner.Budget(steps=10_000, seeds=4)
     steps = np.array([4_000, 5_000, 5_999, 6_001, 4_500])   # the last pads the batch
-    np.testing.assert_array_equal(runner.playing_seeds(steps, budget, lead=2_000),
+    np.testing.assert_array_equal(runner.playing_seeds(steps, budget, lead=2_000, seeds=4),
                                   [True, True, True, False, False])
     steps = np.array([10_000, 9_000, 12_000, 9_500, 0])
-    np.testing.assert_array_equal(runner.playing_seeds(steps, budget, lead=2_000),
+    np.testing.assert_array_equal(runner.playing_seeds(steps, budget, lead=2_000, seeds=4),
                                   [False, True, False, True, False])
-    assert not runner.playing_seeds(np.full(5, 10_000), budget, lead=2_000).any()
+    assert not runner.playing_seeds(np.full(5, 10_000), budget, lead=2_000, seeds=4).any()

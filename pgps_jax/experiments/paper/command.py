@@ -6,12 +6,15 @@
     python -m pgps_jax.experiments.paper figure4 --tasks ant --env floor_contacts=model \
         integrator=euler iterations=1 --out runs/ant_brax_physics
     python -m pgps_jax.experiments.paper figure4 --concurrent 5   # 5 cells at once, own processes
+    python -m pgps_jax.experiments.paper figure4 --tasks ant --seeds-per-program 1 --concurrent 5
     python -m pgps_jax.experiments.paper figure4 --report         # tables and figures only
 
 Results go to `<out>/<experiment>/<task>/<config>/` (`runner`), the final returns of every
 done cell to `<out>/<experiment>/final_returns.csv`, and the figures and the table of the
 report (`report`) beside it. Run the same command again to continue:
-done cells are skipped and a cut-off cell continues from its last checkpoint.
+done cells are skipped and a cut-off cell continues from its last checkpoint. With
+`--seeds-per-program S` a cell's seeds run S to a program, in parts that run in turn or, with
+`--concurrent`, side by side like cells.
 """
 
 import argparse
@@ -32,7 +35,7 @@ from pgps_jax.envs import make_env
 from pgps_jax.experiments.paper import side_by_side
 from pgps_jax.experiments.paper.grid import EXPERIMENTS, Cell, cells
 from pgps_jax.experiments.paper.report import REFERENCE, write_report
-from pgps_jax.experiments.paper.runner import RESULT, Budget, run_cell
+from pgps_jax.experiments.paper.runner import RESULT, Budget, Seeds, parts, run_cell
 
 OUT = pathlib.Path("benchmarks/results/paper")
 FINAL_RETURNS = "final_returns.csv"
@@ -48,8 +51,8 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
     """Runs every cell of `experiment` (those of `tasks` and `configs` where given) and writes
     the table of final returns and the report (`reference`: the authors' curves); returns the
     cells' results, in the order of `tasks` where given. With `concurrent` > 1, that many
-    cells at a time, each in a process of its own (`side_by_side`; `child_environ`: their
-    environment, by default this process's)."""
+    cells, or parts of cells (`Budget.seeds_per_program`), at a time, each in a process of its
+    own (`side_by_side`; `child_environ`: their environment, by default this process's)."""
     try:
         chosen = cells(experiment, tuple(tasks), tuple(configs))
     except ValueError as e:
@@ -86,38 +89,52 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
             write_summary(experiment, out, reference)
 
 
+def _units(out: pathlib.Path, experiment: str, budget: Budget, cell: Cell) -> list[Seeds]:
+    """What runs of `cell`: its parts (`parts`), or the whole cell where it is done."""
+    done = (cell_directory(out, experiment, cell) / RESULT).exists()
+    return [Seeds(1, budget.seeds)] if done else parts(budget)
+
+
 def _run_in_turn(experiment: str, out: pathlib.Path, budget: Budget, cell: Cell,
                  progress: bool) -> dict:
-    """Runs `cell` in this process, with a progress bar of its own."""
+    """Runs `cell` in this process, part after part, with a progress bar of its own."""
+    directory = cell_directory(out, experiment, cell)
+    reached = {}
     with tqdm(total=budget.steps * budget.seeds, unit="step", unit_scale=True,
               disable=not progress, desc=f"{experiment} {cell.task} {cell.config}") as bar:
-        def advanced(generation, steps):
-            bar.update(int(np.minimum(steps, budget.steps).sum()) - bar.n)
-            bar.set_postfix_str(f"gen {generation}", refresh=False)
-        result = run_cell(cell, cell_directory(out, experiment, cell), budget, advanced)
-        advanced(result["generations"], np.asarray(result["env_steps"]))  # a cell done before
-        return result
+        for part in _units(out, experiment, budget, cell):
+            def advanced(generation, steps, part=part):
+                reached[part.first] = int(np.minimum(steps, budget.steps).sum())
+                bar.update(sum(reached.values()) - bar.n)
+                bar.set_postfix_str(f"gen {generation}", refresh=False)
+            result = run_cell(cell, directory, budget, advanced, part)
+            advanced(result["generations"], np.asarray(result["env_steps"]))  # done before
+        return json.loads((directory / RESULT).read_text())
 
 
 def _run_side_by_side(experiment: str, out: pathlib.Path, budget: Budget, chosen, concurrent,
                       progress: bool, environ: dict) -> list[dict]:
-    """Runs the cells `concurrent` at a time in processes of their own, with one progress bar
-    over all of them."""
+    """Runs the cells, or their parts, `concurrent` at a time in processes of their own, with
+    one progress bar over all of them."""
     import jax
-    slots = side_by_side.placements(min(concurrent, len(chosen)), jax.default_backend(),
+    units = [(cell, part) for cell in chosen for part in _units(out, experiment, budget, cell)]
+    slots = side_by_side.placements(min(concurrent, len(units)), jax.default_backend(),
                                     jax.local_device_count(),
                                     environ.get("CUDA_VISIBLE_DEVICES"),
                                     side_by_side.memory_share(environ))
     reached = {}
     with tqdm(total=budget.steps * budget.seeds * len(chosen), unit="step", unit_scale=True,
-              disable=not progress, desc=f"{experiment}: {len(chosen)} cells, "
+              disable=not progress, desc=f"{experiment}: {len(units)} programs, "
               f"{len(slots)} at a time") as bar:
-        def advanced(cell, generation, steps):
-            reached[cell.task, cell.config] = int(np.minimum(steps, budget.steps).sum())
+        def advanced(cell, part, generation, steps):
+            reached[cell.task, cell.config, part.first] = int(
+                np.minimum(steps, budget.steps).sum())
             bar.update(sum(reached.values()) - bar.n)
-        return side_by_side.run_side_by_side(
-            experiment, budget, chosen, lambda c: cell_directory(out, experiment, c),
+        side_by_side.run_side_by_side(
+            experiment, budget, units, lambda c: cell_directory(out, experiment, c),
             slots, environ, advanced)
+    return [json.loads((cell_directory(out, experiment, cell) / RESULT).read_text())
+            for cell in chosen]
 
 
 def require_reference(reference: pathlib.Path) -> None:
@@ -160,6 +177,9 @@ def main(argv=None) -> int:
     parser.add_argument("--configs", nargs="*", default=[])
     parser.add_argument("--steps", type=int, default=Budget.steps)
     parser.add_argument("--seeds", type=int, default=Budget.seeds)
+    parser.add_argument("--seeds-per-program", type=int, default=None, metavar="S",
+                        help="seeds vmapped in one program (default: all of a cell's); a "
+                             "cell of more runs in parts, side by side with --concurrent")
     parser.add_argument("--checkpoint-every", type=int, default=Budget.checkpoint_every,
                         help="generations between checkpoints")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
@@ -191,8 +211,8 @@ def main(argv=None) -> int:
             for path in write_summary(args.experiment, args.out, args.reference):
                 print(path)
             return 0
-        for name in ("steps", "seeds", "checkpoint_every", "concurrent"):
-            if getattr(args, name) <= 0:
+        for name in ("steps", "seeds", "checkpoint_every", "concurrent", "seeds_per_program"):
+            if getattr(args, name) is not None and getattr(args, name) <= 0:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer")
         try:
             evaluation = EvaluationConfig(**assignments(args.eval, "--eval",
@@ -201,6 +221,7 @@ def main(argv=None) -> int:
             raise UsageError(str(e)) from None
         budget = Budget(steps=args.steps, seeds=args.seeds, evaluation=evaluation,
                         checkpoint_every=args.checkpoint_every,
+                        seeds_per_program=args.seeds_per_program,
                         overrides=tuple(assignments(args.set, "--set",
                                                      field_types(PGPSConfig)).items()),
                         env=tuple(env_assignments(args.env).items()))

@@ -25,6 +25,13 @@ and `seed<k>_generations.csv`: per generation, the return of every slot of the p
 done (the final evaluation of every evaluated actor on fresh start states
 PRNGKey(k + 10,000), the settings, the wall-clock and the device); and `checkpoints/` while
 it runs. A cell is continued or counted as done only under the settings it was started with.
+
+A cell's seeds can also run in parts (`Budget.seeds_per_program`): each part a program of its
+own, its seeds keyed as in the whole cell, so the parts can run in turn or side by side in
+processes of their own (`side_by_side`). A part writes its seeds' files, and its checkpoints,
+at-budget record and result under its own names (`Seeds.suffix`); once every part is done,
+`result.json` merges theirs (seeds in order, `wall_s` the sum of the parts' wall-clocks,
+`parts` each part's own).
 """
 
 import dataclasses
@@ -53,6 +60,7 @@ from pgps_jax.experiments.paper.grid import Cell
 
 RESULT = "result.json"
 AT_BUDGET = "at_budget.npz"
+CHECKPOINTS = "checkpoints"
 FINAL_KEY_OFFSET = 10_000
 """Seed k's final evaluation starts from PRNGKey(k + FINAL_KEY_OFFSET): states no evaluation
 during training saw."""
@@ -73,6 +81,42 @@ class Budget:
     """(field, value) pairs of PGPSConfig replacing every cell's (e.g. reduced sizes)."""
     env: tuple = ()
     """(name, value) keyword arguments of `make_env` for every cell (e.g. physics settings)."""
+    seeds_per_program: Optional[int] = None
+    """Seeds vmapped in one program; a cell of more runs in parts (`parts`). None: all."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Seeds:
+    """Seeds first..first + count − 1 of a cell: those one program runs."""
+
+    first: int
+    count: int
+    whole: bool = True
+    """The part is the whole cell (its files keep the cell's names)."""
+
+    @property
+    def last(self) -> int:
+        return self.first + self.count - 1
+
+    @property
+    def numbers(self) -> range:
+        return range(self.first, self.last + 1)
+
+    @property
+    def suffix(self) -> str:
+        """What a part's own files add to their names: `_seeds<first>-<last>`, none for the
+        whole cell."""
+        return "" if self.whole else f"_seeds{self.first}-{self.last}"
+
+
+def parts(budget: Budget) -> list[Seeds]:
+    """The parts a cell's seeds run in: `seeds_per_program` at a time, the last holding the
+    rest."""
+    size = budget.seeds_per_program or budget.seeds
+    if size >= budget.seeds:
+        return [Seeds(1, budget.seeds)]
+    return [Seeds(first, min(size, budget.seeds - first + 1), whole=False)
+            for first in range(1, budget.seeds + 1, size)]
 
 
 def seed_file(seed: int, actor: str = "") -> str:
@@ -92,39 +136,54 @@ def padded_seeds(seeds: int, devices: int) -> int:
     return math.ceil(seeds / devices) * devices
 
 
-def playing_seeds(steps: np.ndarray, budget: Budget, lead: int) -> np.ndarray:
-    """[batch] bool: the seeds that play the next generation. Those below the budget play
-    unless more than `lead` env steps ahead of the furthest-behind of them; the others, and
-    the padding seeds, wait."""
+def playing_seeds(steps: np.ndarray, budget: Budget, lead: int, seeds: int) -> np.ndarray:
+    """[batch] bool: which of the program's `seeds` (the rest of its batch pads it) play the
+    next generation. Those below the budget play unless more than `lead` env steps ahead of
+    the furthest-behind of them; the others, and the padding seeds, wait."""
     below = np.zeros(steps.shape, bool)
-    below[:budget.seeds] = steps[:budget.seeds] < budget.steps
+    below[:seeds] = steps[:seeds] < budget.steps
     if not below.any():
         return below
     return below & (steps <= steps[below].min() + lead)
 
 
+def part_file(name: str, part: Seeds) -> str:
+    """A part's own file of the cell's file `name` (`RESULT`, `AT_BUDGET`, `CHECKPOINTS`): the
+    same for the whole cell."""
+    stem, dot, extension = name.partition(".")
+    return f"{stem}{part.suffix}{dot}{extension}"
+
+
 def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
-             on_generation: Optional[Callable[[int, np.ndarray], None]] = None) -> dict:
+             on_generation: Optional[Callable[[int, np.ndarray], None]] = None,
+             part: Optional[Seeds] = None) -> dict:
     """Runs `cell` to `budget.steps` in `directory` (continuing its checkpoint if it has one)
-    and returns its result (as `result.json` holds it). A done cell is not run again.
-    `on_generation(generation, env_steps [seeds])` is called after every generation."""
+    and returns its result (as `result.json` holds it); with `part` (one of `parts(budget)`),
+    only those seeds, returning the part's result and merging every part's into the cell's
+    once all are done. A done cell or part is not run again. `on_generation(generation,
+    env_steps [seeds])` is called after every generation."""
+    part = part or Seeds(1, budget.seeds)
     config = for_task(cell.task, cell.algo, **dict(cell.overrides), **dict(budget.overrides))
     mesh = seed_mesh()
     env = make_env(cell.task, **dict(budget.env))
     settings = _settings(cell.algo, config, budget, mesh.size, env)
     with rundir.writing(directory):
         directory.mkdir(parents=True, exist_ok=True)
-    if (directory / RESULT).exists():
-        result = json.loads((directory / RESULT).read_text())
-        _require_same(directory, result["settings"], settings, cell.task, done=True)
-        return result
+    for done in dict.fromkeys((RESULT, part_file(RESULT, part))):
+        if (directory / done).exists():
+            result = json.loads((directory / done).read_text())
+            _require_same(directory, result["settings"], settings, cell.task, done=True)
+            if not part.whole:
+                merge_parts(directory, budget)
+            return result
     agent = make_agent(cell.algo, config, env, budget.evaluation)
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seeds"))
-    batch = padded_seeds(budget.seeds, mesh.size)
-    numbers = jnp.arange(1, batch + 1)
+    batch = padded_seeds(part.count, mesh.size)
+    numbers = jnp.arange(part.first, part.first + batch)
     keys = jax.device_put(jax.vmap(jax.random.PRNGKey)(numbers), sharding)
     eval_keys = jax.device_put(jax.vmap(jax.random.PRNGKey)(numbers + 100), sharding)
-    checkpoints = Checkpoints(directory / "checkpoints", keep=2)
+    checkpoints = Checkpoints(directory / part_file(CHECKPOINTS, part), keep=2)
+    at_budget_file = directory / part_file(AT_BUDGET, part)
     start = time.perf_counter()
     try:
         if checkpoints.latest_step() is None:
@@ -138,7 +197,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             meta = checkpoints.latest_meta()[1]
             _require_same(directory, meta["settings"], settings, cell.task)
             if not isinstance(meta["curves"], dict):
-                raise UsageError(f"{directory / 'checkpoints'} was written by an older runner "
+                raise UsageError(f"{checkpoints.directory} was written by an older runner "
                                  "(μ's curves only); remove it to run the cell again")
             shapes = loop.placed(loop.state_shapes(agent, keys, eval_keys, seeds=True),
                                  sharding)
@@ -149,11 +208,11 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                                              sharding=sharding, restored=shapes,
                                              waiting=True)
         steps = np.asarray(jax.device_get(state.total_steps))
-        at_budget = AtBudget.read(directory, budget.seeds, generation)
-        at_budget.record(generation, steps, state, agent, budget, directory)
+        at_budget = AtBudget.read(at_budget_file, part.count, generation)
+        at_budget.record(generation, steps, state, agent, budget, at_budget_file)
         population_keys = [m.key for m in _population_metrics(agent)]
-        while steps[:budget.seeds].min() < budget.steps:
-            active = playing_seeds(steps, budget, programs.generation_steps)
+        while steps[:part.count].min() < budget.steps:
+            active = playing_seeds(steps, budget, programs.generation_steps, part.count)
             state, done = loop.generation(programs, state, active=active)
             generation += 1
             m = done.metrics
@@ -163,15 +222,15 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                 populations[seed].append([int(m["gen/generation"][seed])] + [
                     np.asarray(m[key][seed]).item() for key in population_keys])
             steps = np.where(active, m["gen/total_steps"], steps)
-            at_budget.record(generation, steps, state, agent, budget, directory)
+            at_budget.record(generation, steps, state, agent, budget, at_budget_file)
             if generation % budget.checkpoint_every == 0:
                 checkpoints.save(generation, state, {
                     "settings": settings, "curves": curves, "populations": populations,
                     "elapsed_s": elapsed + time.perf_counter() - start})
-                _write_curves(directory, curves, budget)
-                _write_populations(directory, populations, agent, budget)
+                _write_curves(directory, curves, budget, part)
+                _write_populations(directory, populations, agent, part)
             if on_generation is not None:
-                on_generation(generation, steps[:budget.seeds])
+                on_generation(generation, steps[:part.count])
         final_keys = jax.device_put(
             jax.vmap(jax.random.PRNGKey)(numbers + FINAL_KEY_OFFSET), sharding)
         state, finished = loop.finish(programs, state, final_keys,
@@ -180,20 +239,41 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
         checkpoints.close()
     for seed in np.flatnonzero(finished.unfinished_active):  # played from its start
         _add_evaluation(curves, finished.unfinished, seed, int(finished.unfinished_step[seed]))
-    _write_curves(directory, curves, budget)
-    _write_populations(directory, populations, agent, budget)
+    _write_curves(directory, curves, budget, part)
+    _write_populations(directory, populations, agent, part)
     result = {"task": cell.task, "config": cell.config, "algo": cell.algo,
               "overrides": dict(cell.overrides),
-              "steps": budget.steps, "seeds": list(range(1, budget.seeds + 1)),
+              "steps": budget.steps, "seeds": list(part.numbers),
               "env_steps": at_budget.steps.tolist(), "generations": generation,
               "final": {actor: np.asarray(finished.final[f"eval/{actor}_mean"])
-                        [:budget.seeds].tolist() for actor in agent.evaluated},
+                        [:part.count].tolist() for actor in agent.evaluated},
               "wall_s": elapsed + time.perf_counter() - start,
               "device": f"{mesh.size} × {jax.devices()[0].device_kind}", "settings": settings}
-    rundir.write_atomic(directory / RESULT, json.dumps(result, indent=1).encode())
-    shutil.rmtree(directory / "checkpoints", ignore_errors=True)  # the result is all it keeps
-    (directory / AT_BUDGET).unlink(missing_ok=True)
+    rundir.write_atomic(directory / part_file(RESULT, part), json.dumps(result, indent=1).encode())
+    shutil.rmtree(checkpoints.directory, ignore_errors=True)  # the result is all it keeps
+    at_budget_file.unlink(missing_ok=True)
+    if not part.whole:
+        merge_parts(directory, budget)
     return result
+
+
+def merge_parts(directory: pathlib.Path, budget: Budget) -> Optional[dict]:
+    """The cell's result from its parts' (`parts`), written as `RESULT` once every part is
+    done; None before."""
+    files = [directory / part_file(RESULT, part) for part in parts(budget)]
+    if not all(f.exists() for f in files):
+        return None
+    done = [json.loads(f.read_text()) for f in files]
+    merged = {**done[0], "seeds": [s for d in done for s in d["seeds"]],
+              "env_steps": [s for d in done for s in d["env_steps"]],
+              "generations": max(d["generations"] for d in done),
+              "final": {actor: [v for d in done for v in d["final"][actor]]
+                        for actor in done[0]["final"]},
+              "wall_s": sum(d["wall_s"] for d in done),
+              "parts": [{key: d[key] for key in ("seeds", "generations", "wall_s", "device")}
+                        for d in done]}
+    rundir.write_atomic(directory / RESULT, json.dumps(merged, indent=1).encode())
+    return merged
 
 
 @dataclasses.dataclass
@@ -204,7 +284,8 @@ class AtBudget:
     A seed's final evaluation is of its actors at its own budget, as its curve ends there.
     A seed at its budget waits (`playing_seeds`), so these are its final state's actors; the
     record also serves a cell continued from a checkpoint written while seeds still trained
-    past their budget. Kept in the cell's `AT_BUDGET` file for a cut-off cell: a cell
+    past their budget. Kept in the cell's `AT_BUDGET` file (a part's: `at_budget<suffix>.npz`)
+    for a cut-off cell: a cell
     continued from its checkpoint at generation g keeps the records of generations up to g
     and makes the later ones again from its replayed generations (which a GPU need not replay
     bit for bit)."""
@@ -217,10 +298,10 @@ class AtBudget:
     """[seeds] the generation after which it was reached (-1 while below)."""
 
     @classmethod
-    def read(cls, directory: pathlib.Path, seeds: int, generation: int) -> "AtBudget":
-        """The records of generations up to `generation` (the one the cell continues from)."""
+    def read(cls, path: pathlib.Path, seeds: int, generation: int) -> "AtBudget":
+        """The records in `path` of generations up to `generation` (the one the cell
+        continues from), of a program of `seeds` seeds."""
         kept = cls([None] * seeds, np.zeros(seeds, np.int64), np.full(seeds, -1, np.int64))
-        path = directory / AT_BUDGET
         if path.exists():
             with np.load(path) as saved:
                 for i in np.flatnonzero((saved["generations"] >= 0)
@@ -231,9 +312,9 @@ class AtBudget:
         return kept
 
     def record(self, generation: int, steps: np.ndarray, state, agent, budget,
-               directory: pathlib.Path) -> None:
-        """Records the seeds that have reached the budget since the last call."""
-        reached = [i for i in range(budget.seeds)
+               path: pathlib.Path) -> None:
+        """Records the seeds that have reached the budget since the last call, in `path`."""
+        reached = [i for i in range(len(self.actors))
                    if self.actors[i] is None and steps[i] >= budget.steps]
         if not reached:
             return
@@ -241,7 +322,7 @@ class AtBudget:
         for i in reached:
             self.actors[i], self.steps[i], self.generations[i] = actors[i], steps[i], generation
         arrays = {f"seed{i + 1}": a for i, a in enumerate(self.actors) if a is not None}
-        rundir.write_npz(directory / AT_BUDGET, steps=self.steps,
+        rundir.write_npz(path, steps=self.steps,
                          generations=self.generations, **arrays)
 
     def actors_of(self, state, agent, sharding) -> jax.Array:
@@ -332,11 +413,10 @@ def _population_metrics(agent) -> list[Metric]:
     return [schema[key] for key in keys if key in schema]
 
 
-def _write_populations(directory: pathlib.Path, populations: list, agent,
-                       budget: Budget) -> None:
-    """seed<k>_generations.csv of every seed of the budget (`_population_metrics`)."""
+def _write_populations(directory: pathlib.Path, populations: list, agent, part: Seeds) -> None:
+    """seed<k>_generations.csv of every seed of the part (`_population_metrics`)."""
     header = ["generation"] + [m.column for m in _population_metrics(agent)]
-    for seed, rows in enumerate(populations[:budget.seeds], start=1):
+    for seed, rows in zip(part.numbers, populations):
         rundir.write_csv(directory / f"seed{seed}_generations.csv", header, rows)
 
 
@@ -349,11 +429,11 @@ def _add_evaluation(curves: dict, metrics: dict, seed: int, step: int) -> None:
                            *map(float, returns)])
 
 
-def _write_curves(directory: pathlib.Path, curves: dict, budget: Budget) -> None:
+def _write_curves(directory: pathlib.Path, curves: dict, budget: Budget, part: Seeds) -> None:
     """The curve of every actor and seed (`seed_file`; the first actor's is the reported
     one): its evaluations so far, up to the budget, in the authors' format."""
     for index, (actor, per_seed) in enumerate(curves.items()):
-        for seed, rows in enumerate(per_seed[:budget.seeds], start=1):
+        for seed, rows in zip(part.numbers, per_seed):
             rows = [row for row in rows if row[0] <= budget.steps]
             episodes = len(rows[0]) - 3 if rows else 0
             rundir.write_csv(directory / seed_file(seed, actor if index else ""),

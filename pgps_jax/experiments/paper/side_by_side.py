@@ -26,7 +26,7 @@ from typing import Callable, Optional, Sequence
 from pgps_jax.cli.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RunFailed, UsageError,
                                   report)
 from pgps_jax.experiments.paper.grid import Cell
-from pgps_jax.experiments.paper.runner import RESULT, Budget, run_cell
+from pgps_jax.experiments.paper.runner import RESULT, Budget, Seeds, part_file, run_cell
 
 MEMORY_IN_USE = 0.9
 """The share of a GPU's memory that the processes placed on it take in all, unless the
@@ -70,24 +70,25 @@ def placements(concurrent: int, platform: str, devices: int, visible: Optional[s
             for slot in range(concurrent)]
 
 
-def run_side_by_side(experiment: str, budget: Budget, cells: Sequence[Cell],
+def run_side_by_side(experiment: str, budget: Budget, units: Sequence[tuple[Cell, Seeds]],
                      directory_of: Callable[[Cell], pathlib.Path], slots: list[dict],
-                     environ: dict, on_progress: Callable[[Cell, int, list], None]
+                     environ: dict, on_progress: Callable[[Cell, Seeds, int, list], None]
                      ) -> list[Optional[dict]]:
-    """Runs `cells` with len(slots) of them at a time, each in a child process with `environ`
-    and its slot's variables; `on_progress(cell, generation, env_steps)` after each
-    generation of any (and once for a cell that was done already). Returns the results in
-    the order of `cells`; RunFailed naming every cell that failed, with what it said, once
-    the others have finished (their results are written)."""
-    jobs = list(enumerate(cells))
+    """Runs `units` (a cell and its seeds: the whole cell or a part, `runner.parts`) with
+    len(slots) of them at a time, each in a child process with `environ` and its slot's
+    variables; `on_progress(cell, seeds, generation, env_steps)` after each generation of any
+    (and once for one that was done already). Returns their results in the order of `units`;
+    RunFailed naming every one that failed, with what it said, once the others have finished
+    (their results are written)."""
+    jobs = list(enumerate(units))
     queue = jobs[len(slots):]  # slot s starts cell s, then takes the next as it comes free
-    results, failures, children = [None] * len(cells), [], []
+    results, failures, children = [None] * len(units), [], []
     lock, stopping = threading.Lock(), threading.Event()
     inherited = {k: v for k, v in environ.items() if k != MEMORY_FRACTION_OLD}
 
     def work(slot: dict, job) -> None:
         while job is not None:
-            index, cell = job
+            index, (cell, part) = job
             child = None
             try:
                 with lock:
@@ -98,8 +99,8 @@ def run_side_by_side(experiment: str, budget: Budget, cells: Sequence[Cell],
                         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                         env={**inherited, **slot}, start_new_session=True)
                     children.append(child)
-                outcome = _follow(child, cell, directory_of(cell), budget,
-                                  lambda *done: _locked(lock, on_progress, cell, *done))
+                outcome = _follow(child, cell, part, directory_of(cell), budget,
+                                  lambda *done: _locked(lock, on_progress, cell, part, *done))
             except Exception as e:  # the parent's side failed: the child must not run on
                 if child is not None and child.poll() is None:
                     child.kill()
@@ -109,7 +110,9 @@ def run_side_by_side(experiment: str, budget: Budget, cells: Sequence[Cell],
                 if isinstance(outcome, dict):
                     results[index] = outcome
                 else:
-                    failures.append(f"{cell.task} {cell.config}: {outcome}")
+                    failures.append(f"{cell.task} {cell.config}"
+                                    f"{'' if part.whole else f' seeds {part.first}-{part.last}'}: "
+                                    f"{outcome}")
                 job = queue.pop(0) if queue else None
 
     threads = [threading.Thread(target=work, args=(slot, job), daemon=True)
@@ -138,15 +141,16 @@ def _locked(lock: threading.Lock, function: Callable, *args) -> None:
         function(*args)
 
 
-def _follow(child: subprocess.Popen, cell: Cell, directory: pathlib.Path, budget: Budget,
-            on_progress: Callable[[int, list], None]):
-    """Hands `cell` to `child` and follows it to its end: its result, or what it said on
-    stderr (its `error:` line and the next lines, else its last lines)."""
+def _follow(child: subprocess.Popen, cell: Cell, part: Seeds, directory: pathlib.Path,
+            budget: Budget, on_progress: Callable[[int, list], None]):
+    """Hands `cell`'s seeds `part` to `child` and follows it to its end: its result (the
+    part's, or the cell's where the cell was done before), or what it said on stderr (its
+    `error:` line and the next lines, else its last lines)."""
     errors = []
     reader = threading.Thread(target=lambda: errors.append(child.stderr.read()))
     reader.start()
     try:
-        child.stdin.write(pickle.dumps((cell, directory, budget)))
+        child.stdin.write(pickle.dumps((cell, part, directory, budget)))
         child.stdin.close()
     except BrokenPipeError:  # it ended before reading: its stderr says why
         pass
@@ -156,7 +160,8 @@ def _follow(child: subprocess.Popen, cell: Cell, directory: pathlib.Path, budget
             on_progress(done["generation"], done["env_steps"])
     reader.join()
     if child.wait() == 0:
-        return json.loads((directory / RESULT).read_text())
+        own = directory / part_file(RESULT, part)
+        return json.loads((own if own.exists() else directory / RESULT).read_text())
     lines = errors[0].decode(errors="replace").rstrip().splitlines()
     said = [i for i, line in enumerate(lines) if line.startswith("error: ")]
     if said:  # with its first lines of detail (a list of differing settings, say)
@@ -165,8 +170,9 @@ def _follow(child: subprocess.Popen, cell: Cell, directory: pathlib.Path, budget
 
 
 def _child() -> int:
-    """Runs the cell handed over on stdin; a `PROGRESS` line per generation on stdout."""
-    cell, directory, budget = pickle.loads(sys.stdin.buffer.read())
+    """Runs the cell's seeds handed over on stdin; a `PROGRESS` line per generation on
+    stdout."""
+    cell, part, directory, budget = pickle.loads(sys.stdin.buffer.read())
 
     def progress(generation, env_steps) -> None:
         sys.stdout.buffer.write(PROGRESS + json.dumps(
@@ -175,7 +181,7 @@ def _child() -> int:
         sys.stdout.buffer.flush()
 
     def body() -> int:
-        result = run_cell(cell, directory, budget, progress)
+        result = run_cell(cell, directory, budget, progress, part)
         progress(result["generations"], result["env_steps"])  # a cell done before, too
         return EXIT_OK
     try:
