@@ -81,6 +81,10 @@ def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrup
     assert [float(r["mu_final"]) for r in rows] == pytest.approx(result["final"]["mu"])
     assert json.loads((cell / runner.RESULT).read_text()) == result
     assert not (cell / "checkpoints").exists()  # a done cell keeps its results only
+    header, rows = read_csv(cell / runner.GENERATION_TIMES)
+    assert header == ["generation", "play_s", "learn_s"]
+    assert [int(r["generation"]) for r in rows] == list(range(1, result["generations"] + 1))
+    assert all(float(r["play_s"]) > 0 and float(r["learn_s"]) > 0 for r in rows)
 
 
 def test_each_seed_stops_at_its_own_budget(uninterrupted):
@@ -257,16 +261,23 @@ IN_PARTS = dataclasses.replace(BUDGET, seeds_per_program=1)
 @pytest.fixture(scope="module")
 def in_parts(tmp_path_factory):
     """The cell's seeds in programs of one seed each, in turn; the second part cut off after
-    its third generation and continued from its checkpoint."""
+    its third generation (its files written after every generation, the checkpoint after
+    the second) and continued from its checkpoint."""
     out = tmp_path_factory.mktemp("paper_in_parts")
     cell = out / "figure4" / "hopper" / "pgps"
 
     def cut_off(generation, steps):
         if generation == 3:
             raise Stop
-    with pytest.raises(Stop):
-        runner.run_cell(HOPPER, cell, IN_PARTS, cut_off, runner.parts(IN_PARTS)[1])
+    every, runner.FILES_EVERY_S = runner.FILES_EVERY_S, 0.0
+    try:
+        with pytest.raises(Stop):
+            runner.run_cell(HOPPER, cell, IN_PARTS, cut_off, runner.parts(IN_PARTS)[1])
+    finally:
+        runner.FILES_EVERY_S = every
     assert (cell / "checkpoints_seeds2-2").is_dir() and not (cell / runner.RESULT).exists()
+    for name in ("seed2_generations.csv", "generation_times_seeds2-2.csv"):
+        assert len(read_csv(cell / name)[1]) == 3, name  # past the checkpoint's two
     (result,) = command.run("figure4", out, IN_PARTS, tasks=["hopper"], configs=["pgps"],
                             progress=False)
     return out, result
@@ -382,8 +393,8 @@ def test_seeds_are_split_over_the_devices(tmp_path):
     assert cell["device"].startswith("2 × ") and cell["seeds"] == [1, 2, 3]
     assert len(cell["final"]["mu"]) == 3 and np.all(np.isfinite(cell["final"]["mu"]))
     assert sorted(p.name for p in (tmp_path / "figure4" / "hopper" / "pgps").glob("*.csv")) == [
-        f"seed{k}{kind}.csv" for k in (1, 2, 3)
-        for kind in ("", "_elite", "_generations", "_td3")]
+        runner.GENERATION_TIMES] + [f"seed{k}{kind}.csv" for k in (1, 2, 3)
+                                    for kind in ("", "_elite", "_generations", "_td3")]
 
 
 def test_padding_rounds_the_batch_up_to_the_devices():

@@ -21,7 +21,8 @@ authors' format (Step, Mean, Std, Reward1..RewardE of the actor the algorithm re
 TD3's actor for TD3 alone; the columns of a training run's `eval.csv`), the same of each other
 evaluated actor in `seed<k>_<actor>.csv` (PGPS: the TD3 actor's and the elite's, Figure 5),
 and `seed<k>_generations.csv`: per generation, the return of every slot of the population
-(Figure 6: the Q-filtered slots against the sampled ones); `result.json` once the cell is
+(Figure 6: the Q-filtered slots against the sampled ones); `generation_times.csv`: per
+generation, the seconds of its play and learn phases; `result.json` once the cell is
 done (the final evaluation of every evaluated actor on fresh start states
 PRNGKey(k + 10,000), the settings, the wall-clock and the device); and `checkpoints/` while
 it runs. A cell is continued or counted as done only under the settings it was started with.
@@ -61,6 +62,10 @@ from pgps_jax.experiments.paper.grid import Cell
 RESULT = "result.json"
 AT_BUDGET = "at_budget.npz"
 CHECKPOINTS = "checkpoints"
+GENERATION_TIMES = "generation_times.csv"
+FILES_EVERY_S = 60.0
+"""Seconds between writes of a running cell's curves and per-generation files besides those
+at its checkpoints: a cell cut off between checkpoints keeps its curves to within this."""
 FINAL_KEY_OFFSET = 10_000
 """Seed k's final evaluation starts from PRNGKey(k + FINAL_KEY_OFFSET): states no evaluation
 during training saw."""
@@ -148,8 +153,8 @@ def playing_seeds(steps: np.ndarray, budget: Budget, lead: int, seeds: int) -> n
 
 
 def part_file(name: str, part: Seeds) -> str:
-    """A part's own file of the cell's file `name` (`RESULT`, `AT_BUDGET`, `CHECKPOINTS`): the
-    same for the whole cell."""
+    """A part's own file of the cell's file `name` (`RESULT`, `AT_BUDGET`, `CHECKPOINTS`,
+    `GENERATION_TIMES`): the same for the whole cell."""
     stem, dot, extension = name.partition(".")
     return f"{stem}{part.suffix}{dot}{extension}"
 
@@ -192,7 +197,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             state = programs["init"](keys, eval_keys)
             generation, elapsed = 0, 0.0
             curves = {actor: [[] for _ in range(batch)] for actor in agent.evaluated}
-            populations = [[] for _ in range(batch)]
+            populations, times = [[] for _ in range(batch)], []
         else:
             meta = checkpoints.latest_meta()[1]
             _require_same(directory, meta["settings"], settings, cell.task)
@@ -203,6 +208,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                                  sharding)
             generation, state, meta = checkpoints.restore_latest(shapes)
             curves, populations = meta["curves"], meta["populations"]
+            times = meta.get("times", [])
             elapsed = meta["elapsed_s"]
             programs = loop.Programs.compile(agent, keys, eval_keys, seeds=True,
                                              sharding=sharding, restored=shapes,
@@ -211,10 +217,12 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
         at_budget = AtBudget.read(at_budget_file, part.count, generation)
         at_budget.record(generation, steps, state, agent, budget, at_budget_file)
         population_keys = [m.key for m in _population_metrics(agent)]
+        written = time.perf_counter()
         while steps[:part.count].min() < budget.steps:
             active = playing_seeds(steps, budget, programs.generation_steps, part.count)
-            state, done = loop.generation(programs, state, active=active)
+            state, done = loop.generation(programs, state, time_phases=True, active=active)
             generation += 1
+            times.append([generation, done.play_seconds, done.seconds - done.play_seconds])
             m = done.metrics
             for seed in np.flatnonzero(m["eval/done"] & active):
                 _add_evaluation(curves, m, seed, int(m["eval/step"][seed]))
@@ -223,12 +231,14 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                     np.asarray(m[key][seed]).item() for key in population_keys])
             steps = np.where(active, m["gen/total_steps"], steps)
             at_budget.record(generation, steps, state, agent, budget, at_budget_file)
-            if generation % budget.checkpoint_every == 0:
+            saving = generation % budget.checkpoint_every == 0
+            if saving:
                 checkpoints.save(generation, state, {
                     "settings": settings, "curves": curves, "populations": populations,
-                    "elapsed_s": elapsed + time.perf_counter() - start})
-                _write_curves(directory, curves, budget, part)
-                _write_populations(directory, populations, agent, part)
+                    "times": times, "elapsed_s": elapsed + time.perf_counter() - start})
+            if saving or time.perf_counter() - written >= FILES_EVERY_S:
+                _write_files(directory, curves, populations, times, agent, budget, part)
+                written = time.perf_counter()
             if on_generation is not None:
                 on_generation(generation, steps[:part.count])
         final_keys = jax.device_put(
@@ -239,8 +249,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
         checkpoints.close()
     for seed in np.flatnonzero(finished.unfinished_active):  # played from its start
         _add_evaluation(curves, finished.unfinished, seed, int(finished.unfinished_step[seed]))
-    _write_curves(directory, curves, budget, part)
-    _write_populations(directory, populations, agent, part)
+    _write_files(directory, curves, populations, times, agent, budget, part)
     result = {"task": cell.task, "config": cell.config, "algo": cell.algo,
               "overrides": dict(cell.overrides),
               "steps": budget.steps, "seeds": list(part.numbers),
@@ -411,6 +420,18 @@ def _population_metrics(agent) -> list[Metric]:
             "cem/elite_return", "td3/return", "td3/guided_loss", "td3/beta", "cem/var_mean",
             "cem/damping"]
     return [schema[key] for key in keys if key in schema]
+
+
+def _write_files(directory: pathlib.Path, curves: dict, populations: list, times: list,
+                 agent, budget: Budget, part: Seeds) -> None:
+    """The part's curves (`_write_curves`), per-generation metrics (`_write_populations`) and
+    `GENERATION_TIMES`: per generation, the wall-clock seconds of its play phase (the
+    rollouts, the test episodes riding along) and of its learn phase (the buffer, the CEM and
+    the TD3 updates), shared by the program's seeds."""
+    _write_curves(directory, curves, budget, part)
+    _write_populations(directory, populations, agent, part)
+    rundir.write_csv(directory / part_file(GENERATION_TIMES, part),
+                     ["generation", "play_s", "learn_s"], times)
 
 
 def _write_populations(directory: pathlib.Path, populations: list, agent, part: Seeds) -> None:
