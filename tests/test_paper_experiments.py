@@ -278,6 +278,14 @@ def in_parts(tmp_path_factory):
     assert (cell / "checkpoints_seeds2-2").is_dir() and not (cell / runner.RESULT).exists()
     for name in ("seed2_generations.csv", "generation_times_seeds2-2.csv"):
         assert len(read_csv(cell / name)[1]) == 3, name  # past the checkpoint's two
+    with pytest.raises(UsageError, match="run in parts .*checkpoints_seeds2-2.*seeds-per-program"):
+        runner.run_cell(HOPPER, cell, BUDGET)  # the cell whole: the part continues in parts
+    first = runner.run_cell(HOPPER, cell, IN_PARTS, part=runner.parts(IN_PARTS)[0])
+    assert first["seeds"] == [1] and not (cell / runner.RESULT).exists()
+    generations = []
+    runner.run_cell(HOPPER, cell, IN_PARTS, lambda generation, steps: generations.append(
+        generation), runner.parts(IN_PARTS)[1])
+    assert generations[0] == 3  # from the checkpoint of generation 2
     (result,) = command.run("figure4", out, IN_PARTS, tasks=["hopper"], configs=["pgps"],
                             progress=False)
     return out, result
@@ -294,7 +302,7 @@ def test_a_cell_in_parts_keys_its_seeds_as_the_whole_cell_and_merges_their_resul
                                                                seeds_per_program=2))] == [
         "_seeds1-2", "_seeds3-4", "_seeds5-5"]
     assert runner.parts(dataclasses.replace(BUDGET, seeds_per_program=2)) == [
-        runner.Seeds(1, 2)]
+        runner.Seeds(1, 2, whole=True)]
     (whole_out, _), (out, result) = uninterrupted, in_parts
     cell, whole = (o / "figure4" / "hopper" / "pgps" for o in (out, whole_out))
     assert result["seeds"] == [1, 2] and [p["seeds"] for p in result["parts"]] == [[1], [2]]
@@ -313,6 +321,12 @@ def test_a_cell_in_parts_keys_its_seeds_as_the_whole_cell_and_merges_their_resul
         firsts.append(first)
     assert firsts[0] != firsts[1]
     assert not list(cell.glob("checkpoints*")) and not list(cell.glob("at_budget*"))
+    assert sorted(p.name for p in cell.glob("generation_times*")) == [
+        "generation_times_seeds1-1.csv", "generation_times_seeds2-2.csv"]
+    stale = dataclasses.replace(IN_PARTS, steps=BUDGET.steps + 200)
+    with pytest.raises(UsageError, match=r"(?s)other settings.*steps: 600 there, 800 now"):
+        runner.merge_parts(cell, stale, runner._settings(
+            "pgps", for_task("hopper", **TINY), stale, 1, make_env("hopper")), "hopper")
 
 
 def test_cells_side_by_side_compute_what_they_compute_in_turn(in_parts, tmp_path, cache):
@@ -325,7 +339,8 @@ def test_cells_side_by_side_compute_what_they_compute_in_turn(in_parts, tmp_path
     (refused / runner.RESULT).write_bytes(  # a result of another cell
         (out / "figure4" / "hopper" / "pgps" / runner.RESULT).read_bytes())
     same_platform = {**cli_env(cache), "JAX_PLATFORMS": os.environ.get("JAX_PLATFORMS", "")}
-    with pytest.raises(RunFailed, match=r"1 cell\(s\) failed: hopper cemrl: .* other settings"):
+    with pytest.raises(RunFailed, match=r"1 of 3 program\(s\) failed: hopper cemrl: .* other "
+                                        "settings"):
         command.run("figure4", tmp_path, IN_PARTS, tasks=["hopper"], configs=["pgps", "cemrl"],
                     progress=False, concurrent=2, child_environ=same_platform)
     _, rows = read_csv(tmp_path / "figure4" / command.FINAL_RETURNS)  # written all the same

@@ -92,7 +92,7 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
 def _units(out: pathlib.Path, experiment: str, budget: Budget, cell: Cell) -> list[Seeds]:
     """What runs of `cell`: its parts (`parts`), or the whole cell where it is done."""
     done = (cell_directory(out, experiment, cell) / RESULT).exists()
-    return [Seeds(1, budget.seeds)] if done else parts(budget)
+    return [Seeds(1, budget.seeds, whole=True)] if done else parts(budget)
 
 
 def _run_in_turn(experiment: str, out: pathlib.Path, budget: Budget, cell: Cell,

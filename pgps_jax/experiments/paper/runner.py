@@ -62,6 +62,8 @@ from pgps_jax.experiments.paper.grid import Cell
 RESULT = "result.json"
 AT_BUDGET = "at_budget.npz"
 CHECKPOINTS = "checkpoints"
+PART = "_seeds"
+"""What a part's own files add to the cell's names, before its seeds' span."""
 GENERATION_TIMES = "generation_times.csv"
 FILES_EVERY_S = 60.0
 """Seconds between writes of a running cell's curves and per-generation files besides those
@@ -96,7 +98,7 @@ class Seeds:
 
     first: int
     count: int
-    whole: bool = True
+    whole: bool
     """The part is the whole cell (its files keep the cell's names)."""
 
     @property
@@ -111,7 +113,7 @@ class Seeds:
     def suffix(self) -> str:
         """What a part's own files add to their names: `_seeds<first>-<last>`, none for the
         whole cell."""
-        return "" if self.whole else f"_seeds{self.first}-{self.last}"
+        return "" if self.whole else f"{PART}{self.first}-{self.last}"
 
 
 def parts(budget: Budget) -> list[Seeds]:
@@ -119,7 +121,7 @@ def parts(budget: Budget) -> list[Seeds]:
     rest."""
     size = budget.seeds_per_program or budget.seeds
     if size >= budget.seeds:
-        return [Seeds(1, budget.seeds)]
+        return [Seeds(1, budget.seeds, whole=True)]
     return [Seeds(first, min(size, budget.seeds - first + 1), whole=False)
             for first in range(1, budget.seeds + 1, size)]
 
@@ -164,23 +166,26 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
              part: Optional[Seeds] = None) -> dict:
     """Runs `cell` to `budget.steps` in `directory` (continuing its checkpoint if it has one)
     and returns its result (as `result.json` holds it); with `part` (one of `parts(budget)`),
-    only those seeds, returning the part's result and merging every part's into the cell's
-    once all are done. A done cell or part is not run again. `on_generation(generation,
-    env_steps [seeds])` is called after every generation."""
-    part = part or Seeds(1, budget.seeds)
+    only those seeds, returning the part's result (the cell's, where the cell was done
+    whole) and merging every part's into the cell's once all are done. A done cell or part
+    is not run again; a part whose cell holds parts or checkpoints of other settings or of
+    another split is refused. `on_generation(generation, env_steps [the part's seeds])` is
+    called after every generation."""
+    part = part or Seeds(1, budget.seeds, whole=True)
     config = for_task(cell.task, cell.algo, **dict(cell.overrides), **dict(budget.overrides))
     mesh = seed_mesh()
     env = make_env(cell.task, **dict(budget.env))
     settings = _settings(cell.algo, config, budget, mesh.size, env)
     with rundir.writing(directory):
         directory.mkdir(parents=True, exist_ok=True)
-    for done in dict.fromkeys((RESULT, part_file(RESULT, part))):
+    for done in dict.fromkeys((part_file(RESULT, part), RESULT)):
         if (directory / done).exists():
             result = json.loads((directory / done).read_text())
             _require_same(directory, result["settings"], settings, cell.task, done=True)
             if not part.whole:
-                merge_parts(directory, budget)
+                merge_parts(directory, budget, settings, cell.task)
             return result
+    _require_parts_alike(directory, budget, settings, cell.task)
     agent = make_agent(cell.algo, config, env, budget.evaluation)
     sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("seeds"))
     batch = padded_seeds(part.count, mesh.size)
@@ -262,17 +267,38 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     shutil.rmtree(checkpoints.directory, ignore_errors=True)  # the result is all it keeps
     at_budget_file.unlink(missing_ok=True)
     if not part.whole:
-        merge_parts(directory, budget)
+        merge_parts(directory, budget, settings, cell.task)
     return result
 
 
-def merge_parts(directory: pathlib.Path, budget: Budget) -> Optional[dict]:
+def _require_parts_alike(directory: pathlib.Path, budget: Budget, settings: dict,
+                         task: str) -> None:
+    """UsageError unless every part's result in `directory` was run under `settings`, and
+    every checkpoint there is of one of the parts of `budget`'s split (a cell cut off in
+    another split continues only in that split)."""
+    stem, _, extension = RESULT.partition(".")
+    for done in sorted(directory.glob(f"{stem}{PART}*.{extension}")):
+        _require_same(directory, json.loads(done.read_text())["settings"], settings, task,
+                      done=True)
+    ours = {part_file(CHECKPOINTS, part) for part in parts(budget)}
+    others = sorted(p.name for p in directory.glob(f"{CHECKPOINTS}*") if p.name not in ours)
+    if others:
+        split = "whole" if CHECKPOINTS in others else "in parts"
+        raise UsageError(f"{directory} holds checkpoints of this cell run {split} "
+                         f"({', '.join(others)}); continue it with the --seeds-per-program "
+                         "it was started with, or remove them to run it again")
+
+
+def merge_parts(directory: pathlib.Path, budget: Budget, settings: dict,
+                task: str) -> Optional[dict]:
     """The cell's result from its parts' (`parts`), written as `RESULT` once every part is
-    done; None before."""
+    done (UsageError if one was run under other settings than `settings`); None before."""
     files = [directory / part_file(RESULT, part) for part in parts(budget)]
     if not all(f.exists() for f in files):
         return None
     done = [json.loads(f.read_text()) for f in files]
+    for result in done:
+        _require_same(directory, result["settings"], settings, task, done=True)
     merged = {**done[0], "seeds": [s for d in done for s in d["seeds"]],
               "env_steps": [s for d in done for s in d["env_steps"]],
               "generations": max(d["generations"] for d in done),

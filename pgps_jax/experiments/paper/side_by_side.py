@@ -1,4 +1,5 @@
-"""Cells in flight side by side: each in a process of its own, placed on the GPUs in turn.
+"""Cells in flight side by side: each in a process of its own, placed on the GPUs in turn; a
+cell run in parts (`runner.parts`) as one process per part.
 
 One cell's generation is a chain of small kernels that leaves a GPU mostly idle; several cells
 in separate processes fill it (better still under CUDA's MPS daemon, which lets their kernels
@@ -7,7 +8,7 @@ s mod G, the slots placed on a GPU sharing `memory_share` of its memory equally;
 every slot uses the host. A cell in a process of its own computes what it computes in the
 command's own process (same seed, same machine, same result).
 
-The parent hands a child its cell and budget on stdin and reads its progress on its stdout,
+The parent hands a child its cell, its seeds and the budget on stdin and reads its progress on its stdout,
 one `PROGRESS` line per generation (`python -m pgps_jax.experiments.paper.side_by_side` is the
 child's side). Each child has a session of its own, so that Ctrl-C reaches it once, from the
 parent.
@@ -81,7 +82,7 @@ def run_side_by_side(experiment: str, budget: Budget, units: Sequence[tuple[Cell
     RunFailed naming every one that failed, with what it said, once the others have finished
     (their results are written)."""
     jobs = list(enumerate(units))
-    queue = jobs[len(slots):]  # slot s starts cell s, then takes the next as it comes free
+    queue = jobs[len(slots):]  # slot s starts unit s, then takes the next as it comes free
     results, failures, children = [None] * len(units), [], []
     lock, stopping = threading.Lock(), threading.Event()
     inherited = {k: v for k, v in environ.items() if k != MEMORY_FRACTION_OLD}
@@ -132,7 +133,8 @@ def run_side_by_side(experiment: str, budget: Budget, units: Sequence[tuple[Cell
             child.wait()
         raise
     if failures:
-        raise RunFailed(f"{experiment}: {len(failures)} cell(s) failed: " + "; ".join(failures))
+        raise RunFailed(f"{experiment}: {len(failures)} of {len(units)} program(s) failed: "
+                        + "; ".join(failures))
     return results
 
 
