@@ -131,6 +131,26 @@ def test_episodes_that_do_not_drive_the_loop_carry_on_in_the_next_rollout():
     np.testing.assert_array_equal(valid.sum(0), [3, 3])
 
 
+def test_only_the_first_episodes_are_recorded_when_asked():
+    """`recorded=1`: the episodes play as before, and the transitions and validity are those
+    of the full recording's first slot (the test episodes riding along are not kept)."""
+    env = Countdown()
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    params = jnp.asarray([[0.0], [1.0], [2.0]])
+
+    def played(**kwargs):
+        return play(env, constant_policy, params, begin_episodes(env, keys, jnp.asarray([4, 6, 5])),
+                    6, **kwargs)
+    full_episodes, full, full_valid = played()
+    episodes, transitions, valid = played(recorded=1)
+    equal = lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    jax.tree.map(equal, episodes, full_episodes)
+    assert transitions.obs.shape == (6, 1, 2) and valid.shape == (6, 1)
+    jax.tree.map(lambda a, b: equal(a, b[:, :1]), transitions, full)
+    equal(valid, full_valid[:, :1])
+    assert int(valid.sum()) == 4
+
+
 def test_a_brax_episode_limit_is_a_truncation_not_a_terminal_step():
     """Brax's `EpisodeWrapper` ends an episode at its time limit with done = 1 and
     info["truncation"] = 1: the stored step bootstraps (discount 1), in episodes and in the

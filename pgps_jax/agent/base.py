@@ -180,10 +180,10 @@ class Agent:
         batch, transitions, valid = play(
             env, self.policy, join(actors, evaluation.repeat_actors(tests.actors, tested.episodes)),
             join(episodes, tests.episodes), max(self.config.t_max, tested.steps),
-            record=record, drive=~test_slots | hurry, noise=noise)
+            record=record, drive=~test_slots | hurry, noise=noise, recorded=num_rollout)
         tests, report = evaluation.advanced(
             tests, jax.tree.map(lambda x: x[num_rollout:], batch))
-        mine = lambda x: x[:rows, :num_rollout]
+        mine = lambda x: x[:rows]
         return (state.replace(evaluation=tests),
                 jax.tree.map(lambda x: x[:num_rollout], batch),
                 jax.tree.map(mine, transitions), mine(valid), report)

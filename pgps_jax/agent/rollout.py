@@ -106,27 +106,29 @@ def begin_episodes(env: Env, reset_keys: jax.Array, step_limits: jax.Array) -> E
 
 def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeState,
          max_steps: int, record: bool = True, gamma: float = 1.0,
-         drive: jax.Array | None = None, noise: tuple[jax.Array, jax.Array] | None = None
-         ) -> tuple[EpisodeState, Transition, jax.Array]:
+         drive: jax.Array | None = None, noise: tuple[jax.Array, jax.Array] | None = None,
+         recorded: int | None = None) -> tuple[EpisodeState, Transition, jax.Array]:
     """Steps every live episode until none of those marked in `drive` [B] (default: all) is
     alive; the others advance alongside and may still be alive at the end.
 
     noise: (key, std [B]): each episode's actions get N(0, std²) noise, clipped to [-1, 1]
     (the TD3 baseline's exploration); the transitions hold the noisy actions.
 
-    Returns the episodes, the transitions [max_steps, B] (row t = the loop's t-th step; empty
-    [0, B] unless `record`) and their validity [max_steps, B]. The loop takes at most
-    `max_steps` steps: no episode that drives it may have more steps left.
+    Returns the episodes, the transitions [max_steps, R] of the first R = `recorded` episodes
+    (default all B; row t = the loop's t-th step; empty [0, R] unless `record`) and their
+    validity [max_steps, R]. The loop takes at most `max_steps` steps: no episode that drives
+    it may have more steps left.
     """
     batch = episodes.alive.shape[0]
+    recorded = batch if recorded is None else recorded
     drive = jnp.ones((batch,), bool) if drive is None else drive
     act = jax.vmap(policy)
     rows = max_steps if record else 0
-    empty = Transition(obs=jnp.zeros((rows, batch, env.observation_size)),
-                       action=jnp.zeros((rows, batch, env.action_size)),
-                       reward=jnp.zeros((rows, batch)),
-                       next_obs=jnp.zeros((rows, batch, env.observation_size)),
-                       discount=jnp.zeros((rows, batch)))
+    empty = Transition(obs=jnp.zeros((rows, recorded, env.observation_size)),
+                       action=jnp.zeros((rows, recorded, env.action_size)),
+                       reward=jnp.zeros((rows, recorded)),
+                       next_obs=jnp.zeros((rows, recorded, env.observation_size)),
+                       discount=jnp.zeros((rows, recorded)))
 
     def step(c):
         e = c["episodes"]
@@ -151,13 +153,13 @@ def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeStat
         if record:
             row = Transition(obs=state.obs, action=action, reward=nxt.reward,
                              next_obs=nxt.obs, discount=_discount(nxt))
-            out["transitions"] = jax.tree.map(lambda buf, x: buf.at[c["t"]].set(x),
+            out["transitions"] = jax.tree.map(lambda buf, x: buf.at[c["t"]].set(x[:recorded]),
                                               c["transitions"], row)
-            out["valid"] = c["valid"].at[c["t"]].set(stored)
+            out["valid"] = c["valid"].at[c["t"]].set(stored[:recorded])
         return out
 
     carry = dict(t=jnp.zeros((), jnp.int32), episodes=episodes,
-                 transitions=empty, valid=jnp.zeros((rows, batch), bool))
+                 transitions=empty, valid=jnp.zeros((rows, recorded), bool))
     c = jax.lax.while_loop(lambda c: jnp.any(c["episodes"].alive & drive), step, carry)
     return c["episodes"], c["transitions"], c["valid"]
 

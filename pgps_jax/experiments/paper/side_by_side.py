@@ -8,9 +8,9 @@ s mod G, the slots placed on a GPU sharing `memory_share` of its memory equally;
 every slot uses the host. A cell in a process of its own computes what it computes in the
 command's own process (same seed, same machine, same result).
 
-The parent hands a child its cell, its seeds and the budget on stdin and reads its progress on its stdout,
-one `PROGRESS` line per generation (`python -m pgps_jax.experiments.paper.side_by_side` is the
-child's side). Each child has a session of its own, so that Ctrl-C reaches it once, from the
+The parent hands a child its cell, its seeds and the budget on stdin and reads its progress
+on its stdout, one `PROGRESS` line per generation (`python -m
+pgps_jax.experiments.paper.side_by_side` is the child's side). Each child has a session of its own, so that Ctrl-C reaches it once, from the
 parent.
 """
 
