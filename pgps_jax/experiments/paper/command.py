@@ -35,7 +35,8 @@ from pgps_jax.envs import make_env
 from pgps_jax.experiments.paper import side_by_side
 from pgps_jax.experiments.paper.grid import EXPERIMENTS, Cell, cells
 from pgps_jax.experiments.paper.report import REFERENCE, write_report
-from pgps_jax.experiments.paper.runner import RESULT, Budget, Seeds, parts, run_cell
+from pgps_jax.experiments.paper.runner import (RESULT, Budget, Seeds, parts, run_cell,
+                                               whole_cell)
 
 OUT = pathlib.Path("benchmarks/results/paper")
 FINAL_RETURNS = "final_returns.csv"
@@ -92,7 +93,7 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
 def _units(out: pathlib.Path, experiment: str, budget: Budget, cell: Cell) -> list[Seeds]:
     """What runs of `cell`: its parts (`parts`), or the whole cell where it is done."""
     done = (cell_directory(out, experiment, cell) / RESULT).exists()
-    return [Seeds(1, budget.seeds, whole=True)] if done else parts(budget)
+    return [whole_cell(budget)] if done else parts(budget)
 
 
 def _run_in_turn(experiment: str, out: pathlib.Path, budget: Budget, cell: Cell,

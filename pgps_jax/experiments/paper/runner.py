@@ -116,12 +116,17 @@ class Seeds:
         return "" if self.whole else f"{PART}{self.first}-{self.last}"
 
 
+def whole_cell(budget: Budget) -> Seeds:
+    """All of a cell's seeds, in one program."""
+    return Seeds(1, budget.seeds, whole=True)
+
+
 def parts(budget: Budget) -> list[Seeds]:
     """The parts a cell's seeds run in: `seeds_per_program` at a time, the last holding the
     rest."""
     size = budget.seeds_per_program or budget.seeds
     if size >= budget.seeds:
-        return [Seeds(1, budget.seeds, whole=True)]
+        return [whole_cell(budget)]
     return [Seeds(first, min(size, budget.seeds - first + 1), whole=False)
             for first in range(1, budget.seeds + 1, size)]
 
@@ -171,7 +176,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     is not run again; a part whose cell holds parts or checkpoints of other settings or of
     another split is refused. `on_generation(generation, env_steps [the part's seeds])` is
     called after every generation."""
-    part = part or Seeds(1, budget.seeds, whole=True)
+    part = part or whole_cell(budget)
     config = for_task(cell.task, cell.algo, **dict(cell.overrides), **dict(budget.overrides))
     mesh = seed_mesh()
     env = make_env(cell.task, **dict(budget.env))
