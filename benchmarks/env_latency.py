@@ -208,7 +208,7 @@ def main():
                         help=f"batch {BRAX_BATCH} alone, without Brax's env")
     args = parser.parse_args()
     try:
-        alternative = env_assignments(args.alternative, "--alternative", allow_warp=True)
+        alternative = env_assignments(args.alternative, "--alternative")
     except UsageError as e:
         parser.error(str(e))
     tasks = args.tasks.split(",")

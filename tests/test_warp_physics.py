@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from pgps_jax.cli.assignments import env_assignments
-from pgps_jax.cli.errors import UsageError
-from pgps_jax.envs import make_env
+from pgps_jax.envs import env_batches, make_env
+from pgps_jax.agent.config import EvaluationConfig
+from pgps_jax.experiments.paper import command, runner
 
 N_ENVS = 3
 CONVERGED = dict(iterations=50, ls_iterations=50)
@@ -79,7 +80,53 @@ def test_unknown_impl_names_the_choices():
         make_env("hopper", impl="cuda")
 
 
-def test_commands_that_train_refuse_warp():
-    with pytest.raises(UsageError, match="impl=warp can step an env .* but not train"):
-        env_assignments(["impl=warp"])
-    assert env_assignments(["impl=warp"], allow_warp=True) == {"impl": "warp"}
+def _rows(tree, rows):
+    return jax.tree.map(lambda x: np.asarray(x)[rows], tree)
+
+
+@pytest.mark.parametrize("impl", ["jax", "warp"])
+def test_batches_join_slice_and_choose_env_by_env(impl):
+    """A batch joined from two steps as the two batches step apart; its slices and a choice
+    between two batches give each env's own state; Warp's arrays of the whole batch (its
+    contacts) keep their size through all three."""
+    env = make_env("hopper", impl=impl)
+    reset, step = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.step))
+    first = reset(jax.random.split(jax.random.PRNGKey(0), 2))
+    second = step(reset(jax.random.split(jax.random.PRNGKey(1), 3)),
+                  jnp.full((3, env.action_size), 0.3))
+    joined = env_batches.concatenate(first, second)
+    actions = jax.random.uniform(jax.random.PRNGKey(2), (5, env.action_size), minval=-1.0)
+    stepped = step(joined, actions)
+    for part, rows, alone in ((first, slice(0, 2), step(first, actions[:2])),
+                              (second, slice(2, 5), step(second, actions[2:]))):
+        np.testing.assert_allclose(_rows(stepped.obs, rows), alone.obs, rtol=1e-5, atol=1e-5)
+        np.testing.assert_array_equal(
+            env_batches.rows(joined, rows.start, rows.stop).pipeline_state.qpos,
+            part.pipeline_state.qpos)
+    chosen = env_batches.select(jnp.array([True, False, False, True, False]), stepped, joined)
+    for i, source in enumerate((stepped, joined, joined, stepped, joined)):
+        np.testing.assert_array_equal(_rows(chosen.obs, i), _rows(source.obs, i))
+        np.testing.assert_array_equal(_rows(chosen.pipeline_state.qvel, i),
+                                      _rows(source.pipeline_state.qvel, i))
+    if impl == "warp":
+        for batch in (joined, chosen, env_batches.rows(joined, 1, 4)):
+            assert batch.pipeline_state._impl.contact__pos.shape == (
+                first.pipeline_state._impl.contact__pos.shape)
+
+
+def test_a_cell_trains_on_warp(tmp_path):
+    """The experiment runner's tiny hopper cell on Warp: two seeds whose episodes end apart
+    (so one waits for the other), checkpointed, to their budget, with finite returns and
+    Warp recorded as the cell's physics."""
+    tiny = dict(pop_size=2, top_k=1, actor_hidden=(16,), critic_hidden=(16,), batch_size=16,
+                buffer_size=2000, warmup_steps=200, t_init=20, t_max=40, t_interval=400,
+                q_filter_start=400, sample_ratio=4, ss1_size=8, ss2_size=16)
+    budget = runner.Budget(steps=600, seeds=2, checkpoint_every=2, overrides=tuple(tiny.items()),
+                           evaluation=EvaluationConfig(every=200, episodes=2, steps=50),
+                           env=(("impl", "warp"),))
+    (result,) = command.run("figure4", tmp_path, budget, tasks=["hopper"], configs=["pgps"],
+                            progress=False)
+    assert min(result["env_steps"]) >= budget.steps
+    assert np.isfinite(result["final"]["mu"]).all()
+    assert result["settings"]["physics"]["impl"] == "warp"
+    assert env_assignments(["impl=warp"]) == {"impl": "warp"}

@@ -10,7 +10,6 @@ that one run loop, one checkpoint format and one experiment runner serve every a
 """
 
 import dataclasses
-import functools
 from typing import Callable, ClassVar
 
 import chex
@@ -26,7 +25,7 @@ from pgps_jax.agent.metrics import Metric
 from pgps_jax.agent.networks import actor_flattener
 from pgps_jax.agent.rollout import EpisodeState, begin_episodes, play, random_warmup
 from pgps_jax.agent.td3 import TD3, TD3State
-from pgps_jax.envs import Env
+from pgps_jax.envs import Env, env_batches
 
 
 @chex.dataclass(frozen=True)
@@ -167,7 +166,6 @@ class Agent:
         num_rollout = actors.shape[0]
         tests = evaluation.begin_if_due(tested, env, state.evaluation,
                                         self.evaluated_actors(state), state.total_steps)
-        join = functools.partial(jax.tree.map, lambda a, b: jnp.concatenate([a, b]))
         limits = jnp.where(active, limits, 0)
         episodes = begin_episodes(env, jax.random.split(reset_key, num_rollout), limits)
         num_tests = tests.episodes.alive.shape[0]
@@ -178,14 +176,16 @@ class Agent:
             noise_key, std = exploration
             noise = (noise_key, jnp.concatenate([std, jnp.zeros((num_tests,))]))
         batch, transitions, valid = play(
-            env, self.policy, join(actors, evaluation.repeat_actors(tests.actors, tested.episodes)),
-            join(episodes, tests.episodes), max(self.config.t_max, tested.steps),
+            env, self.policy,
+            jnp.concatenate([actors, evaluation.repeat_actors(tests.actors, tested.episodes)]),
+            env_batches.concatenate(episodes, tests.episodes),
+            max(self.config.t_max, tested.steps),
             record=record, drive=~test_slots | hurry, noise=noise, recorded=num_rollout)
         tests, report = evaluation.advanced(
-            tests, jax.tree.map(lambda x: x[num_rollout:], batch))
+            tests, env_batches.rows(batch, num_rollout))
         mine = lambda x: x[:rows]
         return (state.replace(evaluation=tests),
-                jax.tree.map(lambda x: x[:num_rollout], batch),
+                env_batches.rows(batch, 0, num_rollout),
                 jax.tree.map(mine, transitions), mine(valid), report)
 
     def counters_and_evaluation(self, state: TrainState, played: Played) -> dict:

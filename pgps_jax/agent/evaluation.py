@@ -21,7 +21,7 @@ import jax.numpy as jnp
 
 from pgps_jax.agent.config import EvaluationConfig
 from pgps_jax.agent.metrics import returns_key
-from pgps_jax.envs import Env
+from pgps_jax.envs import Env, env_batches
 from pgps_jax.agent.rollout import EpisodeState, begin_episodes, run_episodes
 
 
@@ -92,7 +92,7 @@ def begin_if_due(config: EvaluationConfig, env: Env, evaluation: EvaluationState
         actors=actors,
         step=total_steps.astype(jnp.int32), active=jnp.asarray(True),
         next_due=((total_steps // config.every + 1) * config.every).astype(jnp.int32))
-    return jax.tree.map(lambda a, b: jnp.where(begin, a, b), fresh, evaluation)
+    return env_batches.select(begin, fresh, evaluation)
 
 
 def must_end_now(evaluation: EvaluationState, steps_after: jax.Array) -> jax.Array:

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from pgps_jax.agent.buffer import Transition
-from pgps_jax.envs import Env, State
+from pgps_jax.envs import Env, State, env_batches
 
 Policy = Callable[[chex.ArrayTree, jax.Array], jax.Array]  # (params, obs) -> action
 
@@ -87,13 +87,6 @@ def check_step_keeps_the_state(before: State, after: State) -> None:
                              f"shape/dtype {was} to {now}; reset and step must agree")
 
 
-def _select(pred: jax.Array, on_true, on_false):
-    """Per-env choice between two batched pytrees ([B] predicate)."""
-    def pick(a, b):
-        return jnp.where(pred.reshape(pred.shape + (1,) * (a.ndim - 1)), a, b)
-    return jax.tree.map(pick, on_true, on_false)
-
-
 def begin_episodes(env: Env, reset_keys: jax.Array, step_limits: jax.Array) -> EpisodeState:
     """Fresh episodes from `reset_keys` [B]; step_limits [B] caps each (0: the slot stays idle)."""
     batch = reset_keys.shape[0]
@@ -144,7 +137,7 @@ def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeStat
         stored = alive & sound
         reward = jnp.where(stored, nxt.reward, 0.0)
         lengths = e.lengths + alive
-        e = e.replace(env=_select(alive, nxt, state), lengths=lengths,
+        e = e.replace(env=env_batches.select(alive, nxt, state), lengths=lengths,
                       returns=e.returns + reward,
                       discounted=e.discounted + gamma ** e.lengths * reward,
                       unstable=e.unstable | (alive & ~sound),
@@ -203,7 +196,7 @@ def random_warmup(env: Env, key: jax.Array, num_envs: int, steps_per_env: int,
         restart = (nxt.done > 0) | ~sound | (elapsed >= max_episode_steps)
         fresh = jax.vmap(env.reset)(jax.random.split(jax.random.fold_in(restart_key, t),
                                                      num_envs))
-        state = _select(restart, fresh, nxt)
+        state = env_batches.select(restart, fresh, nxt)
         return (state, jnp.where(restart, 0, elapsed)), (transition, sound)
 
     _, (transitions, valid) = jax.lax.scan(step, (state, jnp.zeros((num_envs,), jnp.int32)),

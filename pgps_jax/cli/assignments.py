@@ -44,15 +44,10 @@ def assignments(pairs: list[str], what: str, hints: dict) -> dict:
     return values
 
 
-def env_assignments(pairs: list[str], what: str = "--env", allow_warp: bool = False) -> dict:
+def env_assignments(pairs: list[str], what: str = "--env") -> dict:
     """`make_env` keyword arguments from `name=value` pairs, their values checked as `make_env`
-    would check them (a UsageError instead of its ValueError). `impl=warp` only where
-    `allow_warp`: in a command that steps envs alone, since training and evaluation select
-    between states env by env, and Warp keeps one contact array for the whole batch."""
+    would check them (a UsageError instead of its ValueError)."""
     values = assignments(pairs, what, ENV_FIELDS)
-    if values.get("impl") == "warp" and not allow_warp:
-        raise UsageError(f"{what}: impl=warp can step an env (make_env, benchmarks.env_latency) "
-                         "but not train or evaluate one yet; use impl=jax, the default")
     physics = {name: value for name, value in values.items() if name != "start_pose"}
     try:
         Physics(**physics)

@@ -26,6 +26,7 @@ import numpy as np
 
 from pgps_jax.agent.base import Agent, TrainState
 from pgps_jax.cli.compile_ahead import compile_ahead
+from pgps_jax.envs import env_batches
 
 
 def state_shapes(agent: Agent, key: jax.Array, eval_key: jax.Array, seeds: bool = False):
@@ -121,8 +122,7 @@ def _waiting(agent: Agent):
     plays no step and keeps its state (every part is taken back but the replay buffer, which
     a generation without steps leaves as it was)."""
     def kept_unless(active, new: TrainState, old: TrainState) -> TrainState:
-        merged = jax.tree.map(lambda n, o: jnp.where(active, n, o),
-                              new.replace(buffer=None), old.replace(buffer=None))
+        merged = env_batches.select(active, new.replace(buffer=None), old.replace(buffer=None))
         return merged.replace(buffer=new.buffer)
 
     def play(state: TrainState, active: jax.Array):

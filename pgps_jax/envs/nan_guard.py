@@ -9,7 +9,8 @@ stores a transition flagged unstable.
 from brax.envs.base import State
 import jax
 import jax.numpy as jnp
-from mujoco import mjx
+
+from pgps_jax.envs import env_batches
 
 
 def all_finite(*trees) -> jax.Array:
@@ -25,12 +26,8 @@ def guard(prev: State, new: State, finite: jax.Array) -> State:
 
     metrics = {k: keep(v, prev.metrics.get(k, jnp.zeros_like(v))) for k, v in new.metrics.items()}
     metrics["unstable"] = keep(0.0, 1.0).astype(jnp.float32)
-    if isinstance(new.pipeline_state, mjx.Data):  # MJX's merge (Warp's contacts are global)
-        pipeline_state = new.pipeline_state.where(~finite, prev.pipeline_state)
-    else:
-        pipeline_state = jax.tree.map(keep, new.pipeline_state, prev.pipeline_state)
     return new.replace(
-        pipeline_state=pipeline_state,
+        pipeline_state=env_batches.select(~finite, prev.pipeline_state, new.pipeline_state),
         obs=keep(new.obs, prev.obs),
         reward=keep(new.reward, 0.0),
         done=keep(new.done, 1.0),
