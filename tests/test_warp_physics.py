@@ -11,9 +11,9 @@ from mujoco import mjx
 import numpy as np
 import pytest
 
+from pgps_jax.agent.config import EvaluationConfig
 from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.envs import env_batches, make_env
-from pgps_jax.agent.config import EvaluationConfig
 from pgps_jax.experiments.paper import command, runner
 
 N_ENVS = 3
@@ -115,9 +115,10 @@ def test_batches_join_slice_and_choose_env_by_env(impl):
 
 
 def test_a_cell_trains_on_warp(tmp_path):
-    """The experiment runner's tiny hopper cell on Warp: two seeds whose episodes end apart
-    (so one waits for the other), checkpointed, to their budget, with finite returns and
-    Warp recorded as the cell's physics."""
+    """The experiment runner's tiny hopper cell on Warp, saving checkpoints on the way: two
+    seeds whose episodes end apart, so that they reach the budget in different generations
+    (one waits for the other), with finite returns and Warp recorded as the cell's
+    physics."""
     tiny = dict(pop_size=2, top_k=1, actor_hidden=(16,), critic_hidden=(16,), batch_size=16,
                 buffer_size=2000, warmup_steps=200, t_init=20, t_max=40, t_interval=400,
                 q_filter_start=400, sample_ratio=4, ss1_size=8, ss2_size=16)
@@ -129,4 +130,12 @@ def test_a_cell_trains_on_warp(tmp_path):
     assert min(result["env_steps"]) >= budget.steps
     assert np.isfinite(result["final"]["mu"]).all()
     assert result["settings"]["physics"]["impl"] == "warp"
-    assert env_assignments(["impl=warp"]) == {"impl": "warp"}
+    cell = tmp_path / "figure4" / "hopper" / "pgps"
+    generations = [len((cell / f"seed{seed}_generations.csv").read_text().splitlines())
+                   for seed in (1, 2)]
+    if jax.default_backend() == "cpu":  # these seeds' CPU trajectories reach it apart
+        assert generations[0] != generations[1]
+
+
+def test_the_commands_take_warp():
+    assert env_assignments(["impl=warp", "iterations=2"]) == {"impl": "warp", "iterations": 2}

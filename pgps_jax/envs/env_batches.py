@@ -1,8 +1,8 @@
 """Choosing, joining and slicing batches of env states, env by env.
 
 A batch of states is a pytree whose leaves carry one row per env, except in a physics state
-on MuJoCo Warp (`impl="warp"`): Warp keeps some arrays for the whole batch (its contacts,
-which every physics step computes afresh, and their sizes). Those stay whole here, as in
+on MuJoCo Warp (`impl="warp"`): Warp keeps some arrays for the whole batch (e.g. its
+contacts, which every physics step computes afresh). Those stay whole here, as in
 `mjx.Data.where`: a choice keeps `on_false`'s, a join the first batch's, a slice all of them.
 """
 
@@ -23,7 +23,8 @@ def _per_env(data: mjx.Data):
         return jax.tree.map(lambda _: True, data)
     from mujoco.mjx._src.types import tree_path_to_attr_str
     from mujoco.mjx.warp import types as warp_types
-    batched = warp_types._BATCH_DIM["Data"]  # MJX's own table (what `Data.where` reads)
+    batched = warp_types._BATCH_DIM["Data"]  # MJX's own table, what `Data.where` reads
+    # (private in mujoco-mjx 3.17; tests/test_warp_physics.py fails if it moves)
     return jax.tree_util.tree_map_with_path(
         lambda path, _: batched.get(tree_path_to_attr_str(path), True), data)
 
