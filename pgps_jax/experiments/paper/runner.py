@@ -294,13 +294,12 @@ def _require_parts_alike(directory: pathlib.Path, budget: Budget, settings: dict
                          "it was started with, or remove them to run it again")
 
 
-def merge_parts(directory: pathlib.Path, budget: Budget, settings: dict,
-                task: str) -> Optional[dict]:
-    """The cell's result from its parts' (`parts`), written as `RESULT` once every part is
-    done (UsageError if one was run under other settings than `settings`); None before."""
+def merge_parts(directory: pathlib.Path, budget: Budget, settings: dict, task: str) -> None:
+    """Writes the cell's `RESULT` from its parts' (`parts`) once every part is done
+    (UsageError if one was run under other settings than `settings`)."""
     files = [directory / part_file(RESULT, part) for part in parts(budget)]
     if not all(f.exists() for f in files):
-        return None
+        return
     done = [json.loads(f.read_text()) for f in files]
     for result in done:
         _require_same(directory, result["settings"], settings, task, done=True)
@@ -313,7 +312,6 @@ def merge_parts(directory: pathlib.Path, budget: Budget, settings: dict,
               "parts": [{key: d[key] for key in ("seeds", "generations", "wall_s", "device")}
                         for d in done]}
     rundir.write_atomic(directory / RESULT, json.dumps(merged, indent=1).encode())
-    return merged
 
 
 @dataclasses.dataclass

@@ -10,8 +10,9 @@ command's own process (same seed, same machine, same result).
 
 The parent hands a child its cell, its seeds and the budget on stdin and reads its progress
 on its stdout, one `PROGRESS` line per generation (`python -m
-pgps_jax.experiments.paper.side_by_side` is the child's side). Each child has a session of its own, so that Ctrl-C reaches it once, from the
-parent.
+pgps_jax.experiments.paper.side_by_side` is the child's side); each writes its results where
+the cell run in turn would. Each child has a session of its own, so that Ctrl-C reaches it
+once, from the parent.
 """
 
 import json
@@ -27,7 +28,7 @@ from typing import Callable, Optional, Sequence
 from pgps_jax.cli.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RunFailed, UsageError,
                                   report)
 from pgps_jax.experiments.paper.grid import Cell
-from pgps_jax.experiments.paper.runner import RESULT, Budget, Seeds, part_file, run_cell
+from pgps_jax.experiments.paper.runner import Budget, Seeds, run_cell
 
 MEMORY_IN_USE = 0.9
 """The share of a GPU's memory that the processes placed on it take in all, unless the
@@ -74,22 +75,21 @@ def placements(concurrent: int, platform: str, devices: int, visible: Optional[s
 def run_side_by_side(experiment: str, budget: Budget, units: Sequence[tuple[Cell, Seeds]],
                      directory_of: Callable[[Cell], pathlib.Path], slots: list[dict],
                      environ: dict, on_progress: Callable[[Cell, Seeds, int, list], None]
-                     ) -> list[Optional[dict]]:
+                     ) -> None:
     """Runs `units` (a cell and its seeds: the whole cell or a part, `runner.parts`) with
     len(slots) of them at a time, each in a child process with `environ` and its slot's
     variables; `on_progress(cell, seeds, generation, env_steps)` after each generation of any
-    (and once for one that was done already). Returns their results in the order of `units`;
-    RunFailed naming every one that failed, with what it said, once the others have finished
-    (their results are written)."""
-    jobs = list(enumerate(units))
+    (and once for one that was done already). RunFailed naming every one that failed, with
+    what it said, once the others have finished (their results are written)."""
+    jobs = list(units)
     queue = jobs[len(slots):]  # slot s starts unit s, then takes the next as it comes free
-    results, failures, children = [None] * len(units), [], []
+    failures, children = [], []
     lock, stopping = threading.Lock(), threading.Event()
     inherited = {k: v for k, v in environ.items() if k != MEMORY_FRACTION_OLD}
 
     def work(slot: dict, job) -> None:
         while job is not None:
-            index, (cell, part) = job
+            cell, part = job
             child = None
             try:
                 with lock:
@@ -100,20 +100,18 @@ def run_side_by_side(experiment: str, budget: Budget, units: Sequence[tuple[Cell
                         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                         env={**inherited, **slot}, start_new_session=True)
                     children.append(child)
-                outcome = _follow(child, cell, part, directory_of(cell), budget,
-                                  lambda *done: _locked(lock, on_progress, cell, part, *done))
+                failed = _follow(child, cell, part, directory_of(cell), budget,
+                                 lambda *done: _locked(lock, on_progress, cell, part, *done))
             except Exception as e:  # the parent's side failed: the child must not run on
                 if child is not None and child.poll() is None:
                     child.kill()
                     child.wait()
-                outcome = f"{type(e).__name__}: {e}"
+                failed = f"{type(e).__name__}: {e}"
             with lock:
-                if isinstance(outcome, dict):
-                    results[index] = outcome
-                else:
+                if failed is not None:
                     failures.append(f"{cell.task} {cell.config}"
                                     f"{'' if part.whole else f' seeds {part.first}-{part.last}'}: "
-                                    f"{outcome}")
+                                    f"{failed}")
                 job = queue.pop(0) if queue else None
 
     threads = [threading.Thread(target=work, args=(slot, job), daemon=True)
@@ -135,7 +133,6 @@ def run_side_by_side(experiment: str, budget: Budget, units: Sequence[tuple[Cell
     if failures:
         raise RunFailed(f"{experiment}: {len(failures)} of {len(units)} program(s) failed: "
                         + "; ".join(failures))
-    return results
 
 
 def _locked(lock: threading.Lock, function: Callable, *args) -> None:
@@ -144,10 +141,10 @@ def _locked(lock: threading.Lock, function: Callable, *args) -> None:
 
 
 def _follow(child: subprocess.Popen, cell: Cell, part: Seeds, directory: pathlib.Path,
-            budget: Budget, on_progress: Callable[[int, list], None]):
-    """Hands `cell`'s seeds `part` to `child` and follows it to its end: its result (the
-    part's, or the cell's where the cell was done before), or what it said on stderr (its
-    `error:` line and the next lines, else its last lines)."""
+            budget: Budget, on_progress: Callable[[int, list], None]) -> Optional[str]:
+    """Hands `cell`'s seeds `part` to `child` and follows it to its end: None if it
+    succeeded, else what it said on stderr (its `error:` line and the next lines, else its
+    last lines)."""
     errors = []
     reader = threading.Thread(target=lambda: errors.append(child.stderr.read()))
     reader.start()
@@ -162,8 +159,7 @@ def _follow(child: subprocess.Popen, cell: Cell, part: Seeds, directory: pathlib
             on_progress(done["generation"], done["env_steps"])
     reader.join()
     if child.wait() == 0:
-        own = directory / part_file(RESULT, part)
-        return json.loads((own if own.exists() else directory / RESULT).read_text())
+        return None
     lines = errors[0].decode(errors="replace").rstrip().splitlines()
     said = [i for i, line in enumerate(lines) if line.startswith("error: ")]
     if said:  # with its first lines of detail (a list of differing settings, say)
