@@ -6,6 +6,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import signal
 import subprocess
 import sys
 
@@ -15,6 +16,7 @@ import pytest
 
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, for_task
 from pgps_jax.cli.assignments import assignments, env_assignments, field_types
+from pgps_jax.cli.checkpoint import Checkpoints
 from pgps_jax.cli.errors import RunFailed, UsageError
 from pgps_jax.envs import make_env
 from pgps_jax.experiments.paper import command, grid, runner, side_by_side
@@ -253,6 +255,32 @@ def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninter
                      runner.seed_file(seed, "elite"), f"seed{seed}_generations.csv"):
             assert ((directory / name).read_bytes()
                     == (out / "figure4" / "hopper" / "pgps" / name).read_bytes())
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_stops_a_cell_with_a_checkpoint_of_the_generation_it_stopped_at(
+        uninterrupted, tmp_path, sig):
+    out, (result,) = uninterrupted
+    directory = tmp_path / "cell"
+    rarely = dataclasses.replace(BUDGET, checkpoint_every=100)  # none but the stop's
+
+    def signal_at_third(generation, steps):
+        if generation == 3:
+            os.kill(os.getpid(), sig)
+    handler = signal.getsignal(sig)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run_cell(HOPPER, directory, rarely, signal_at_third)
+    assert signal.getsignal(sig) is handler  # the cell's own handler is gone
+    checkpoints = Checkpoints(directory / runner.CHECKPOINTS)
+    assert checkpoints.steps() == [3]
+    checkpoints.close()
+    assert len(read_csv(directory / "seed1_generations.csv")[1]) == 3
+    assert not (directory / runner.RESULT).exists()
+    generations = []
+    resumed = runner.run_cell(HOPPER, directory, rarely,
+                              lambda generation, steps: generations.append(generation))
+    assert generations[0] == 4
+    assert {**resumed, "wall_s": 0} == {**result, "wall_s": 0}
 
 
 IN_PARTS = dataclasses.replace(BUDGET, seeds_per_program=1)

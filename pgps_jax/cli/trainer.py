@@ -17,7 +17,6 @@ contents are listed in `pgps_jax.cli.run_dir`.
 """
 
 import shutil
-import signal
 import sys
 import time
 from typing import Any, Mapping, Optional
@@ -34,6 +33,7 @@ from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.checkpoint import Checkpoints
 from pgps_jax.cli.errors import RunFailed, UsageError, WriteFailed
 from pgps_jax.cli.plan import Plan
+from pgps_jax.cli.stop_request import StopRequest
 
 _SHORT = {"mu": "μ", "td3": "TD3", "elite": "elite"}
 """How the terminal names the evaluated actors."""
@@ -58,32 +58,6 @@ def first_non_finite(metrics: Mapping[str, Any]) -> Optional[str]:
         if np.issubdtype(value.dtype, np.inexact) and not np.all(np.isfinite(value)):
             return key
     return None
-
-
-class StopRequest:
-    """Turns the first SIGINT/SIGTERM into a request to checkpoint and stop after the current
-    generation; a second Ctrl-C aborts at once (KeyboardInterrupt)."""
-
-    def __init__(self):
-        self.requested: Optional[str] = None
-        self._previous = {}
-
-    def __enter__(self):
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum, frame):
-        if self.requested is not None and signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        self.requested = signal.Signals(signum).name
-        tqdm.write(f"\n{self.requested}: stopping after this generation and writing a "
-                   f"checkpoint (Ctrl-C again to abort without one)", file=sys.stderr)
-
-    def __exit__(self, *exc):
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-        return False
 
 
 class Trainer:

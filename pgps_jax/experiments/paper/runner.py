@@ -25,7 +25,9 @@ and `seed<k>_generations.csv`: per generation, the return of every slot of the p
 generation, the seconds of its play and learn phases; `result.json` once the cell is
 done (the final evaluation of every evaluated actor on fresh start states
 PRNGKey(k + 10,000), the settings, the wall-clock and the device); and `checkpoints/` while
-it runs. A cell is continued or counted as done only under the settings it was started with.
+it runs, written every `Budget.checkpoint_every` generations and when SIGINT or SIGTERM stops
+it (after the generation under way). A cell is continued or counted as done only under the
+settings it was started with.
 
 A cell's seeds can also run in parts (`Budget.seeds_per_program`): each part a program of its
 own, its seeds keyed as in the whole cell, so the parts can run in turn or side by side in
@@ -55,6 +57,7 @@ from pgps_jax.cli import loop
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.checkpoint import Checkpoints
 from pgps_jax.cli.errors import UsageError
+from pgps_jax.cli.stop_request import StopRequest
 from pgps_jax.envs import make_env
 from pgps_jax.envs.mjx_env import MjxEnv
 from pgps_jax.experiments.paper.grid import Cell
@@ -227,30 +230,39 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
         at_budget = AtBudget.read(at_budget_file, part.count, generation)
         at_budget.record(generation, steps, state, agent, budget, at_budget_file)
         population_keys = [m.key for m in _population_metrics(agent)]
-        written = time.perf_counter()
-        while steps[:part.count].min() < budget.steps:
-            active = playing_seeds(steps, budget, programs.generation_steps, part.count)
-            state, done = loop.generation(programs, state, time_phases=True, active=active)
-            generation += 1
-            times.append([generation, done.play_seconds, done.seconds - done.play_seconds])
-            m = done.metrics
-            for seed in np.flatnonzero(m["eval/done"] & active):
-                _add_evaluation(curves, m, seed, int(m["eval/step"][seed]))
-            for seed in np.flatnonzero(active):
-                populations[seed].append([int(m["gen/generation"][seed])] + [
-                    np.asarray(m[key][seed]).item() for key in population_keys])
-            steps = np.where(active, m["gen/total_steps"], steps)
-            at_budget.record(generation, steps, state, agent, budget, at_budget_file)
-            saving = generation % budget.checkpoint_every == 0
-            if saving:
-                checkpoints.save(generation, state, {
-                    "settings": settings, "curves": curves, "populations": populations,
-                    "times": times, "elapsed_s": elapsed + time.perf_counter() - start})
-            if saving or time.perf_counter() - written >= FILES_EVERY_S:
-                _write_files(directory, curves, populations, times, agent, budget, part)
-                written = time.perf_counter()
-            if on_generation is not None:
-                on_generation(generation, steps[:part.count])
+        written, saved = time.perf_counter(), generation
+
+        def save():
+            checkpoints.save(generation, state, {
+                "settings": settings, "curves": curves, "populations": populations,
+                "times": times, "elapsed_s": elapsed + time.perf_counter() - start})
+            _write_files(directory, curves, populations, times, agent, budget, part)
+            return generation, time.perf_counter()
+        with StopRequest() as stop:
+            while steps[:part.count].min() < budget.steps and stop.requested is None:
+                active = playing_seeds(steps, budget, programs.generation_steps, part.count)
+                state, done = loop.generation(programs, state, time_phases=True, active=active)
+                generation += 1
+                times.append([generation, done.play_seconds, done.seconds - done.play_seconds])
+                m = done.metrics
+                for seed in np.flatnonzero(m["eval/done"] & active):
+                    _add_evaluation(curves, m, seed, int(m["eval/step"][seed]))
+                for seed in np.flatnonzero(active):
+                    populations[seed].append([int(m["gen/generation"][seed])] + [
+                        np.asarray(m[key][seed]).item() for key in population_keys])
+                steps = np.where(active, m["gen/total_steps"], steps)
+                at_budget.record(generation, steps, state, agent, budget, at_budget_file)
+                if generation % budget.checkpoint_every == 0:
+                    saved, written = save()
+                elif time.perf_counter() - written >= FILES_EVERY_S:
+                    _write_files(directory, curves, populations, times, agent, budget, part)
+                    written = time.perf_counter()
+                if on_generation is not None:
+                    on_generation(generation, steps[:part.count])
+        if stop.requested is not None and steps[:part.count].min() < budget.steps:
+            if saved != generation:
+                save()
+            raise KeyboardInterrupt  # the command says how to continue
         final_keys = jax.device_put(
             jax.vmap(jax.random.PRNGKey)(numbers + FINAL_KEY_OFFSET), sharding)
         state, finished = loop.finish(programs, state, final_keys,
