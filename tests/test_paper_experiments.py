@@ -6,6 +6,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import shutil
 import signal
 import subprocess
 import sys
@@ -281,6 +282,39 @@ def test_a_signal_stops_a_cell_with_a_checkpoint_of_the_generation_it_stopped_at
                               lambda generation, steps: generations.append(generation))
     assert generations[0] == 4
     assert {**resumed, "wall_s": 0} == {**result, "wall_s": 0}
+
+
+def test_a_done_cell_given_more_seeds_runs_only_those(uninterrupted, tmp_path):
+    out, (result,) = uninterrupted
+    cell = tmp_path / "figure4" / "hopper" / "pgps"
+    shutil.copytree(out / "figure4" / "hopper" / "pgps", cell)
+    before = {p.name: p.read_bytes() for p in cell.iterdir() if p.name != runner.RESULT}
+    three = dataclasses.replace(BUDGET, seeds=3)
+    (merged,) = command.run("figure4", tmp_path, three, tasks=["hopper"], configs=["pgps"],
+                            progress=False)
+    assert merged["seeds"] == [1, 2, 3] and merged["settings"]["seeds"] == 3
+    assert [part["seeds"] for part in merged["parts"]] == [[1, 2], [3]]
+    assert {actor: values[:2] for actor, values in merged["final"].items()} == result["final"]
+    assert all((cell / name).read_bytes() == content for name, content in before.items())
+    # seed 3 is what it is as the second part of a cell of three run two seeds to a program
+    alone = runner.run_cell(HOPPER, tmp_path / "in_parts", dataclasses.replace(
+        three, seeds_per_program=2), part=runner.Seeds(3, 1, whole=False))
+    assert alone["env_steps"] == merged["env_steps"][2:]
+    assert alone["final"] == {actor: values[2:] for actor, values in merged["final"].items()}
+    again = command.run("figure4", tmp_path, three, tasks=["hopper"], configs=["pgps"],
+                        progress=False)
+    assert again == [merged]
+
+
+def test_parts_give_a_done_cell_its_further_seeds():
+    ten = dataclasses.replace(BUDGET, seeds=10)
+    assert runner.parts(ten, done=5) == [runner.Seeds(1, 5, whole=True),
+                                         runner.Seeds(6, 5, whole=False)]
+    assert runner.parts(dataclasses.replace(ten, seeds_per_program=2), done=5) == [
+        runner.Seeds(1, 5, whole=True), runner.Seeds(6, 2, whole=False),
+        runner.Seeds(8, 2, whole=False), runner.Seeds(10, 1, whole=False)]
+    assert runner.parts(ten, done=10) == runner.parts(ten, done=12) == [runner.whole_cell(ten)]
+    assert runner.parts(ten) == [runner.whole_cell(ten)]
 
 
 IN_PARTS = dataclasses.replace(BUDGET, seeds_per_program=1)

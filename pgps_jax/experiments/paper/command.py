@@ -12,9 +12,10 @@
 Results go to `<out>/<experiment>/<task>/<config>/` (`runner`), the final returns of every
 done cell to `<out>/<experiment>/final_returns.csv`, and the figures and the table of the
 report (`report`) beside it. Run the same command again to continue:
-done cells are skipped and a cut-off cell continues from its last checkpoint. With
-`--seeds-per-program S` a cell's seeds run S to a program, in parts that run in turn or, with
-`--concurrent`, side by side like cells.
+done cells are skipped and a cut-off cell continues from its last checkpoint; a done cell
+given more `--seeds` runs only the seeds it has not done. With `--seeds-per-program S` a
+cell's seeds run S to a program, in parts that run in turn or, with `--concurrent`, side by
+side like cells.
 """
 
 import argparse
@@ -35,8 +36,8 @@ from pgps_jax.envs import make_env
 from pgps_jax.experiments.paper import side_by_side
 from pgps_jax.experiments.paper.grid import EXPERIMENTS, Cell, cells
 from pgps_jax.experiments.paper.report import REFERENCE, write_report
-from pgps_jax.experiments.paper.runner import (RESULT, Budget, Seeds, parts, run_cell,
-                                               whole_cell)
+from pgps_jax.experiments.paper.runner import (RESULT, Budget, Seeds, done_seeds, parts,
+                                               run_cell)
 
 OUT = pathlib.Path("benchmarks/results/paper")
 FINAL_RETURNS = "final_returns.csv"
@@ -91,9 +92,9 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
 
 
 def _units(out: pathlib.Path, experiment: str, budget: Budget, cell: Cell) -> list[Seeds]:
-    """What runs of `cell`: its parts (`parts`), or the whole cell where it is done."""
-    done = (cell_directory(out, experiment, cell) / RESULT).exists()
-    return [whole_cell(budget)] if done else parts(budget)
+    """What runs of `cell`: its parts (`parts`), the whole cell where it is done, or the
+    seeds it is given beyond those it has done."""
+    return parts(budget, done_seeds(cell_directory(out, experiment, cell)))
 
 
 def _run_in_turn(experiment: str, out: pathlib.Path, budget: Budget, cell: Cell,

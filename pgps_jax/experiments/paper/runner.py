@@ -27,14 +27,15 @@ done (the final evaluation of every evaluated actor on fresh start states
 PRNGKey(k + 10,000), the settings, the wall-clock and the device); and `checkpoints/` while
 it runs, written every `Budget.checkpoint_every` generations and when SIGINT or SIGTERM stops
 it (after the generation under way). A cell is continued or counted as done only under the
-settings it was started with.
+settings it was started with, its number of seeds aside.
 
 A cell's seeds can also run in parts (`Budget.seeds_per_program`): each part a program of its
 own, its seeds keyed as in the whole cell, so the parts can run in turn or side by side in
 processes of their own (`side_by_side`). A part writes its seeds' files, and its checkpoints,
 at-budget record and result under its own names (`Seeds.suffix`); once every part is done,
 `result.json` merges theirs (seeds in order, `wall_s` the sum of the parts' wall-clocks,
-`parts` each part's own).
+`parts` each part's own). A done cell given more seeds (`Budget.seeds`) runs the others as
+parts after the seeds it has, which keep their files (`parts(budget, done)`).
 """
 
 import dataclasses
@@ -124,14 +125,32 @@ def whole_cell(budget: Budget) -> Seeds:
     return Seeds(1, budget.seeds, whole=True)
 
 
-def parts(budget: Budget) -> list[Seeds]:
+def parts(budget: Budget, done: int = 0) -> list[Seeds]:
     """The parts a cell's seeds run in: `seeds_per_program` at a time, the last holding the
-    rest."""
-    size = budget.seeds_per_program or budget.seeds
-    if size >= budget.seeds:
+    rest. A cell whose `result.json` holds seeds 1..`done` (`done_seeds`), fewer than the
+    budget's, is given the others: its seeds so far are one part, under the cell's names, and
+    the rest follow it, `seeds_per_program` at a time or all in one program."""
+    if done >= budget.seeds:
         return [whole_cell(budget)]
-    return [Seeds(first, min(size, budget.seeds - first + 1), whole=False)
-            for first in range(1, budget.seeds + 1, size)]
+    size = budget.seeds_per_program or budget.seeds - done
+    if done == 0 and size >= budget.seeds:
+        return [whole_cell(budget)]
+    given = [Seeds(1, done, whole=True)] if done else []
+    return given + [Seeds(first, min(size, budget.seeds - first + 1), whole=False)
+                    for first in range(done + 1, budget.seeds + 1, size)]
+
+
+def done_seeds(directory: pathlib.Path) -> int:
+    """How many seeds (1..m) the cell in `directory` has done: those of its `result.json`."""
+    path = directory / RESULT
+    return len(json.loads(path.read_text())["seeds"]) if path.exists() else 0
+
+
+def _parts_of(directory: pathlib.Path, budget: Budget) -> list[Seeds]:
+    """The parts of the cell in `directory`: a done cell's given more seeds by `budget`
+    (`parts(budget, done)`), else `parts(budget)`."""
+    done = done_seeds(directory)
+    return parts(budget, done if done < budget.seeds else 0)
 
 
 def seed_file(seed: int, actor: str = "") -> str:
@@ -190,6 +209,8 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
         if (directory / done).exists():
             result = json.loads((directory / done).read_text())
             _require_same(directory, result["settings"], settings, cell.task, done=True)
+            if not set(part.numbers) <= set(result["seeds"]):
+                continue  # the cell's result, of fewer seeds than it is now given
             if not part.whole:
                 merge_parts(directory, budget, settings, cell.task)
             return result
@@ -297,7 +318,7 @@ def _require_parts_alike(directory: pathlib.Path, budget: Budget, settings: dict
     for done in sorted(directory.glob(f"{stem}{PART}*.{extension}")):
         _require_same(directory, json.loads(done.read_text())["settings"], settings, task,
                       done=True)
-    ours = {part_file(CHECKPOINTS, part) for part in parts(budget)}
+    ours = {part_file(CHECKPOINTS, part) for part in _parts_of(directory, budget)}
     others = sorted(p.name for p in directory.glob(f"{CHECKPOINTS}*") if p.name not in ours)
     if others:
         split = "whole" if CHECKPOINTS in others else "in parts"
@@ -309,8 +330,8 @@ def _require_parts_alike(directory: pathlib.Path, budget: Budget, settings: dict
 def merge_parts(directory: pathlib.Path, budget: Budget, settings: dict, task: str) -> None:
     """Writes the cell's `RESULT` from its parts' (`parts`) once every part is done
     (UsageError if one was run under other settings than `settings`)."""
-    files = [directory / part_file(RESULT, part) for part in parts(budget)]
-    if not all(f.exists() for f in files):
+    files = [directory / part_file(RESULT, part) for part in _parts_of(directory, budget)]
+    if len(files) == 1 or not all(f.exists() for f in files):
         return
     done = [json.loads(f.read_text()) for f in files]
     for result in done:
@@ -321,8 +342,9 @@ def merge_parts(directory: pathlib.Path, budget: Budget, settings: dict, task: s
               "final": {actor: [v for d in done for v in d["final"][actor]]
                         for actor in done[0]["final"]},
               "wall_s": sum(d["wall_s"] for d in done),
-              "parts": [{key: d[key] for key in ("seeds", "generations", "wall_s", "device")}
-                        for d in done]}
+              "settings": {**done[0]["settings"], "seeds": budget.seeds},
+              "parts": [part for d in done for part in d.get("parts", [
+                  {key: d[key] for key in ("seeds", "generations", "wall_s", "device")}])]}
     rundir.write_atomic(directory / RESULT, json.dumps(merged, indent=1).encode())
 
 
@@ -432,10 +454,11 @@ def physics_of(settings: dict, task: str) -> Optional[dict]:
 def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
                   done: bool = False) -> None:
     """UsageError naming the settings in which the cell of `task` in `directory` differs from
-    `now` (for a `done` cell, the devices its seeds were split over do not count: a cell
-    continued from a checkpoint needs its batch, a result does not)."""
+    `now` (for a `done` cell, the devices its seeds were split over and the number of seeds
+    do not count: a cell continued from a checkpoint needs its batch, a result does not, and
+    a done cell can be given more seeds)."""
     saved = {**_ADDED_SETTINGS, **saved, "physics": physics_of(saved, task)}
-    ignored = {"config"} | ({"devices"} if done else set())
+    ignored = {"config"} | ({"devices", "seeds"} if done else set())
     differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now" for key in now
               if key not in ignored and saved.get(key) != now[key]]
     saved_config = saved_fields_as_run(saved["config"], _ADDED_CONFIG_FIELDS)
