@@ -20,7 +20,7 @@ from pgps_jax.cli.assignments import assignments, env_assignments, field_types
 from pgps_jax.cli.checkpoint import Checkpoints
 from pgps_jax.cli.errors import RunFailed, UsageError
 from pgps_jax.envs import make_env
-from pgps_jax.experiments.paper import command, grid, runner, side_by_side
+from pgps_jax.experiments.paper import command, grid, report, runner, side_by_side
 
 from train_cli import REPO, cli_env, read_csv, run_here
 
@@ -290,6 +290,13 @@ def test_a_done_cell_given_more_seeds_runs_only_those(uninterrupted, tmp_path):
     shutil.copytree(out / "figure4" / "hopper" / "pgps", cell)
     before = {p.name: p.read_bytes() for p in cell.iterdir() if p.name != runner.RESULT}
     three = dataclasses.replace(BUDGET, seeds=3)
+    with pytest.raises(UsageError, match="done with 2 seeds"):
+        runner.run_cell(HOPPER, cell, three)  # all three in one program: not over seeds done
+    curves, _, _ = report._ours(cell)
+    (cell / "seed3.csv").write_bytes(b",Step,Mean,Std,Reward1,Reward2\n0,200,1.0,0.0,1.0,1.0\n")
+    drawn = report._ours(cell)[0]  # a seed under way is not drawn with the done ones
+    assert drawn.returns.shape == curves.returns.shape == (2, len(curves.steps))
+    np.testing.assert_array_equal(drawn.returns, curves.returns)
     (merged,) = command.run("figure4", tmp_path, three, tasks=["hopper"], configs=["pgps"],
                             progress=False)
     assert merged["seeds"] == [1, 2, 3] and merged["settings"]["seeds"] == 3

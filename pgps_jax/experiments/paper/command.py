@@ -106,7 +106,7 @@ def _run_in_turn(experiment: str, out: pathlib.Path, budget: Budget, cell: Cell,
               disable=not progress, desc=f"{experiment} {cell.task} {cell.config}") as bar:
         for part in _units(out, experiment, budget, cell):
             def advanced(generation, steps, part=part):
-                reached[part.first] = int(np.minimum(steps, budget.steps).sum())
+                reached[part.first] = int(np.minimum(steps[:part.count], budget.steps).sum())
                 bar.update(sum(reached.values()) - bar.n)
                 bar.set_postfix_str(f"gen {generation}", refresh=False)
             result = run_cell(cell, directory, budget, advanced, part)
@@ -130,7 +130,7 @@ def _run_side_by_side(experiment: str, out: pathlib.Path, budget: Budget, chosen
               f"{len(slots)} at a time") as bar:
         def advanced(cell, part, generation, steps):
             reached[cell.task, cell.config, part.first] = int(
-                np.minimum(steps, budget.steps).sum())
+                np.minimum(np.asarray(steps)[:part.count], budget.steps).sum())
             bar.update(sum(reached.values()) - bar.n)
         side_by_side.run_side_by_side(
             experiment, budget, units, lambda c: cell_directory(out, experiment, c),

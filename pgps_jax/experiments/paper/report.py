@@ -154,14 +154,17 @@ def run_label(config: str, result: Optional[dict], cell: Optional[Cell]) -> str:
 def _ours(directory: pathlib.Path, actor: Optional[str] = None, cell: Optional[Cell] = None
           ) -> tuple[Optional[Curves], Optional[Finals], Optional[dict]]:
     """A cell's curves of `actor` (None: the actor its algorithm reports; those written so
-    far) and, once it is done, its final returns (labelled by `run_label`) and its
-    `result.json`."""
-    read = [read_curve(p) for p in _seed_files(directory, actor)]
-    curves = on_grid(read) if read and all(len(s) for s, _ in read) else None
+    far, or once it is done those of its result's seeds) and, once it is done, its final
+    returns (labelled by `run_label`) and its `result.json`."""
     path = directory / "result.json"
-    if not path.exists():
+    result = json.loads(path.read_text()) if path.exists() else None
+    files = _seed_files(directory, actor)
+    if result is not None:  # not the curves of seeds it is being given under way
+        files = [f for f in files if int(f.stem[4:].partition("_")[0]) in result["seeds"]]
+    read = [read_curve(p) for p in files]
+    curves = on_grid(read) if read and all(len(s) for s, _ in read) else None
+    if result is None:
         return curves, None, None
-    result = json.loads(path.read_text())
     reported = actor or next(iter(result["final"]))  # the algorithm's evaluated actors, in order
     steps = (min(result["env_steps"]), max(result["env_steps"]))
     return curves, Finals(run_label(result["config"], result, cell), steps,

@@ -192,12 +192,16 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
              on_generation: Optional[Callable[[int, np.ndarray], None]] = None,
              part: Optional[Seeds] = None) -> dict:
     """Runs `cell` to `budget.steps` in `directory` (continuing its checkpoint if it has one)
-    and returns its result (as `result.json` holds it); with `part` (one of `parts(budget)`),
+    and returns its result (as `result.json` holds it); with `part` (one of `parts(budget,
+    done_seeds(directory))`),
     only those seeds, returning the part's result (the cell's, where the cell was done
     whole) and merging every part's into the cell's once all are done. A done cell or part
     is not run again; a part whose cell holds parts or checkpoints of other settings or of
     another split is refused. `on_generation(generation, env_steps [the part's seeds])` is
     called after every generation."""
+    if part is None and 0 < done_seeds(directory) < budget.seeds:
+        raise UsageError(f"{directory} holds this cell done with {done_seeds(directory)} "
+                         f"seeds; run the others as parts(budget, done)")
     part = part or whole_cell(budget)
     config = for_task(cell.task, cell.algo, **dict(cell.overrides), **dict(budget.overrides))
     mesh = seed_mesh()
@@ -323,17 +327,24 @@ def _require_parts_alike(directory: pathlib.Path, budget: Budget, settings: dict
     if others:
         split = "whole" if CHECKPOINTS in others else "in parts"
         raise UsageError(f"{directory} holds checkpoints of this cell run {split} "
-                         f"({', '.join(others)}); continue it with the --seeds-per-program "
-                         "it was started with, or remove them to run it again")
+                         f"({', '.join(others)}); continue it with the --seeds and "
+                         "--seeds-per-program it was started with, or remove them to run "
+                         "it again")
 
 
 def merge_parts(directory: pathlib.Path, budget: Budget, settings: dict, task: str) -> None:
-    """Writes the cell's `RESULT` from its parts' (`parts`) once every part is done
-    (UsageError if one was run under other settings than `settings`)."""
-    files = [directory / part_file(RESULT, part) for part in _parts_of(directory, budget)]
+    """Writes the cell's `RESULT` from its parts' (`parts`; a done cell given more seeds:
+    its `RESULT` so far and the parts after it) once every part is done (UsageError if one
+    was run under other settings than `settings`)."""
+    cell_result = directory / RESULT
+    given = json.loads(cell_result.read_text()) if cell_result.exists() else None
+    files = [directory / part_file(RESULT, part) for part in parts(
+        budget, len(given["seeds"]) if given and len(given["seeds"]) < budget.seeds else 0)]
     if len(files) == 1 or not all(f.exists() for f in files):
         return
-    done = [json.loads(f.read_text()) for f in files]
+    done = [given if f == cell_result else json.loads(f.read_text()) for f in files]
+    if [s for d in done for s in d["seeds"]] != list(range(1, budget.seeds + 1)):
+        return  # another part's process merged them meanwhile
     for result in done:
         _require_same(directory, result["settings"], settings, task, done=True)
     merged = {**done[0], "seeds": [s for d in done for s in d["seeds"]],

@@ -11,12 +11,14 @@ command's own process (same seed, same machine, same result).
 The parent hands a child its cell, its seeds and the budget on stdin and reads its progress
 on its stdout, one `PROGRESS` line per generation (`python -m
 pgps_jax.experiments.paper.side_by_side` is the child's side); each writes its results where
-the cell run in turn would. Each child has a session of its own, so that Ctrl-C reaches it
-once, from the parent.
+the cell run in turn would. Each child has a session of its own, so that Ctrl-C (or SIGTERM
+to the parent) reaches it once, from the parent: it stops after its generation under way
+with a checkpoint, even if the parent is gone by then.
 """
 
 import json
 import math
+import os
 import pathlib
 import pickle
 import signal
@@ -118,10 +120,13 @@ def run_side_by_side(experiment: str, budget: Budget, units: Sequence[tuple[Cell
                for slot, job in zip(slots, jobs)]
     for thread in threads:
         thread.start()
+    terminate = signal.signal(signal.SIGTERM, _interrupt)
     try:
         for thread in threads:
             thread.join()
     except KeyboardInterrupt:  # each child stops; its cell continues from its checkpoint
+        print("stopping: each program writes a checkpoint after its generation under way",
+              file=sys.stderr)
         with lock:
             stopping.set()
             for child in children:
@@ -130,9 +135,16 @@ def run_side_by_side(experiment: str, budget: Budget, units: Sequence[tuple[Cell
         for child in children:
             child.wait()
         raise
+    finally:
+        signal.signal(signal.SIGTERM, terminate)
     if failures:
         raise RunFailed(f"{experiment}: {len(failures)} of {len(units)} program(s) failed: "
                         + "; ".join(failures))
+
+
+def _interrupt(signum, frame):
+    """SIGTERM stops the programs as Ctrl-C does."""
+    raise KeyboardInterrupt
 
 
 def _locked(lock: threading.Lock, function: Callable, *args) -> None:
@@ -173,10 +185,13 @@ def _child() -> int:
     cell, part, directory, budget = pickle.loads(sys.stdin.buffer.read())
 
     def progress(generation, env_steps) -> None:
-        sys.stdout.buffer.write(PROGRESS + json.dumps(
-            {"generation": int(generation), "env_steps": [int(s) for s in env_steps]}
-        ).encode() + b"\n")
-        sys.stdout.buffer.flush()
+        try:
+            sys.stdout.buffer.write(PROGRESS + json.dumps(
+                {"generation": int(generation), "env_steps": [int(s) for s in env_steps]}
+            ).encode() + b"\n")
+            sys.stdout.buffer.flush()
+        except BrokenPipeError:  # the command is gone: the cell goes on to its checkpoint
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
     def body() -> int:
         result = run_cell(cell, directory, budget, progress, part)
