@@ -284,6 +284,19 @@ def test_a_signal_stops_a_cell_with_a_checkpoint_of_the_generation_it_stopped_at
     assert {**resumed, "wall_s": 0} == {**result, "wall_s": 0}
 
 
+def test_a_signal_in_a_cell_s_last_generation_stops_after_its_result(uninterrupted,
+                                                                      tmp_path):
+    out, (result,) = uninterrupted
+
+    def signal_at_budget(generation, steps):
+        if steps.min() >= BUDGET.steps:
+            os.kill(os.getpid(), signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt):  # the command runs no further cell
+        runner.run_cell(HOPPER, tmp_path / "cell", BUDGET, signal_at_budget)
+    done = json.loads((tmp_path / "cell" / runner.RESULT).read_text())
+    assert {**done, "wall_s": 0} == {**result, "wall_s": 0}
+
+
 def test_a_done_cell_given_more_seeds_runs_only_those(uninterrupted, tmp_path):
     out, (result,) = uninterrupted
     cell = tmp_path / "figure4" / "hopper" / "pgps"

@@ -284,14 +284,14 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                     written = time.perf_counter()
                 if on_generation is not None:
                     on_generation(generation, steps[:part.count])
-        if stop.requested is not None and steps[:part.count].min() < budget.steps:
-            if saved != generation:
-                save()
-            raise KeyboardInterrupt  # the command says how to continue
-        final_keys = jax.device_put(
-            jax.vmap(jax.random.PRNGKey)(numbers + FINAL_KEY_OFFSET), sharding)
-        state, finished = loop.finish(programs, state, final_keys,
-                                      at_budget.actors_of(state, agent, sharding))
+            if stop.requested is not None and steps[:part.count].min() < budget.steps:
+                if saved != generation:
+                    save()
+                raise KeyboardInterrupt  # the command says how to continue
+            final_keys = jax.device_put(
+                jax.vmap(jax.random.PRNGKey)(numbers + FINAL_KEY_OFFSET), sharding)
+            state, finished = loop.finish(programs, state, final_keys,
+                                          at_budget.actors_of(state, agent, sharding))
     finally:
         checkpoints.close()
     for seed in np.flatnonzero(finished.unfinished_active):  # played from its start
@@ -310,6 +310,8 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     at_budget_file.unlink(missing_ok=True)
     if not part.whole:
         merge_parts(directory, budget, settings, cell.task)
+    if stop.requested is not None:  # in its last generation: done, and nothing more runs
+        raise KeyboardInterrupt
     return result
 
 
