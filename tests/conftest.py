@@ -16,6 +16,9 @@ os.environ["XLA_FLAGS"] = with_fast_compile_flags(os.environ.get("XLA_FLAGS", ""
 import jax  # noqa: E402  (after XLA_FLAGS)
 import pytest  # noqa: E402
 
+from pgps_jax.agent.config import EvaluationConfig  # noqa: E402
+from pgps_jax.experiments.paper.runner import Budget  # noqa: E402
+
 # The maths tests compare with float32 numpy; a GPU would otherwise multiply in TF32. (Not
 # set on a CPU, which multiplies in float32 anyway, so that the tests' in-process runs and
 # their CLI subprocesses compile the same programs and share the compilation cache; set for
@@ -33,6 +36,15 @@ REDUCED = ("seed=1", "total_steps=600", "eval_every=200", "checkpoint_every=2",
 """A PGPS of 2 actors with small networks, episodes of 20-40 steps, a 200-step warm-up and
 a 600-step budget: a few generations on real MJX physics in seconds once compiled; the
 Q-filter starts at 400 steps, so it runs too."""
+REDUCED_PGPS = dict(pop_size=2, top_k=1, actor_hidden=(16,), critic_hidden=(16,),
+                    batch_size=16, buffer_size=2000, warmup_steps=200, t_init=20, t_max=40,
+                    t_interval=400, q_filter_start=400, sample_ratio=4, ss1_size=8,
+                    ss2_size=16)
+"""REDUCED's pgps.* settings as PGPSConfig fields."""
+REDUCED_CELL = Budget(steps=600, seeds=2, checkpoint_every=2,
+                      overrides=tuple(REDUCED_PGPS.items()),
+                      evaluation=EvaluationConfig(every=200, episodes=2, steps=50))
+"""The experiment runner's budget of a cell of two seeds of REDUCED."""
 
 
 def reduced(task: str, *overrides: str) -> list[str]:

@@ -15,21 +15,17 @@ import jax
 import numpy as np
 import pytest
 
-from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, for_task
+from pgps_jax.agent.config import PGPSConfig, for_task
 from pgps_jax.cli.assignments import assignments, env_assignments, field_types
 from pgps_jax.cli.checkpoint import Checkpoints
 from pgps_jax.cli.errors import RunFailed, UsageError
 from pgps_jax.envs import make_env
 from pgps_jax.experiments.paper import command, grid, report, runner, side_by_side
 
+from conftest import REDUCED_CELL, REDUCED_PGPS
 from train_cli import REPO, cli_env, read_csv, run_here
 
-TINY = dict(pop_size=2, top_k=1, actor_hidden=(16,), critic_hidden=(16,), batch_size=16,
-            buffer_size=2000, warmup_steps=200, t_init=20, t_max=40, t_interval=400,
-            q_filter_start=400, sample_ratio=4, ss1_size=8, ss2_size=16)
-"""The tests' reduced PGPS (conftest.REDUCED) as PGPSConfig fields."""
-BUDGET = runner.Budget(steps=600, seeds=2, checkpoint_every=2, overrides=tuple(TINY.items()),
-                       evaluation=EvaluationConfig(every=200, episodes=2, steps=50))
+TINY, BUDGET = REDUCED_PGPS, REDUCED_CELL
 HOPPER = grid.Cell("hopper", "pgps", {})
 
 pytestmark = pytest.mark.xdist_group("paper")  # one worker runs the uninterrupted cell once

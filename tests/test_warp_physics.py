@@ -5,16 +5,19 @@ solved to convergence must play the same episodes, which checks that the model, 
 settings, the frame skip and the reset reach Warp as they reach JAX.
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 from mujoco import mjx
 import numpy as np
 import pytest
 
-from pgps_jax.agent.config import EvaluationConfig
 from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.envs import env_batches, make_env
-from pgps_jax.experiments.paper import command, runner
+from pgps_jax.experiments.paper import command
+
+from conftest import REDUCED_CELL
 
 N_ENVS = 3
 CONVERGED = dict(iterations=50, ls_iterations=50)
@@ -119,12 +122,7 @@ def test_a_cell_trains_on_warp(tmp_path):
     seeds whose episodes end apart, so that they reach the budget in different generations
     (one waits for the other), with finite returns and Warp recorded as the cell's
     physics."""
-    tiny = dict(pop_size=2, top_k=1, actor_hidden=(16,), critic_hidden=(16,), batch_size=16,
-                buffer_size=2000, warmup_steps=200, t_init=20, t_max=40, t_interval=400,
-                q_filter_start=400, sample_ratio=4, ss1_size=8, ss2_size=16)
-    budget = runner.Budget(steps=600, seeds=2, checkpoint_every=2, overrides=tuple(tiny.items()),
-                           evaluation=EvaluationConfig(every=200, episodes=2, steps=50),
-                           env=(("impl", "warp"),))
+    budget = dataclasses.replace(REDUCED_CELL, env=(("impl", "warp"),))
     (result,) = command.run("figure4", tmp_path, budget, tasks=["hopper"], configs=["pgps"],
                             progress=False)
     assert min(result["env_steps"]) >= budget.steps

@@ -120,13 +120,14 @@ def sample_std(values: np.ndarray, axis: int = 0) -> np.ndarray:
     return values.std(axis=axis, ddof=1) if values.shape[axis] > 1 else values.std(axis=axis)
 
 
-def _seed_files(directory: pathlib.Path, actor: Optional[str]) -> list[pathlib.Path]:
+def _seed_files(directory: pathlib.Path, actor: Optional[str],
+                of: Optional[list[int]] = None) -> list[pathlib.Path]:
     """The curves of `actor` (None: the reported actor) in a cell's folder, in the order of
-    their seeds."""
+    their seeds (those of `of` alone, where given)."""
     actor = actor or ""
     seeds = sorted(int(p.stem[4:]) for p in directory.glob("seed*.csv") if p.stem[4:].isdigit())
     return [directory / seed_file(seed, actor) for seed in seeds
-            if (directory / seed_file(seed, actor)).exists()]
+            if (of is None or seed in of) and (directory / seed_file(seed, actor)).exists()]
 
 
 def run_label(config: str, result: Optional[dict], cell: Optional[Cell]) -> str:
@@ -158,10 +159,8 @@ def _ours(directory: pathlib.Path, actor: Optional[str] = None, cell: Optional[C
     returns (labelled by `run_label`) and its `result.json`."""
     path = directory / "result.json"
     result = json.loads(path.read_text()) if path.exists() else None
-    files = _seed_files(directory, actor)
-    if result is not None:  # not the curves of seeds it is being given under way
-        files = [f for f in files if int(f.stem[4:].partition("_")[0]) in result["seeds"]]
-    read = [read_curve(p) for p in files]
+    # once done, not the curves of seeds it is being given under way
+    read = [read_curve(p) for p in _seed_files(directory, actor, result and result["seeds"])]
     curves = on_grid(read) if read and all(len(s) for s, _ in read) else None
     if result is None:
         return curves, None, None

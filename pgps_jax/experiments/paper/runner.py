@@ -146,10 +146,9 @@ def done_seeds(directory: pathlib.Path) -> int:
     return len(json.loads(path.read_text())["seeds"]) if path.exists() else 0
 
 
-def _parts_of(directory: pathlib.Path, budget: Budget) -> list[Seeds]:
-    """The parts of the cell in `directory`: a done cell's given more seeds by `budget`
-    (`parts(budget, done)`), else `parts(budget)`."""
-    done = done_seeds(directory)
+def _split(budget: Budget, done: int) -> list[Seeds]:
+    """The parts whose files a cell with seeds 1..`done` done holds under `budget`: those of
+    a done cell given more seeds (`parts(budget, done)`), else `parts(budget)`."""
     return parts(budget, done if done < budget.seeds else 0)
 
 
@@ -199,9 +198,10 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     is not run again; a part whose cell holds parts or checkpoints of other settings or of
     another split is refused. `on_generation(generation, env_steps [the part's seeds])` is
     called after every generation."""
-    if part is None and 0 < done_seeds(directory) < budget.seeds:
-        raise UsageError(f"{directory} holds this cell done with {done_seeds(directory)} "
-                         f"seeds; run the others as parts(budget, done)")
+    seeds_done = done_seeds(directory)
+    if part is None and 0 < seeds_done < budget.seeds:
+        raise UsageError(f"{directory} holds this cell done with {seeds_done} seeds; run the "
+                         "others as parts(budget, done)")
     part = part or whole_cell(budget)
     config = for_task(cell.task, cell.algo, **dict(cell.overrides), **dict(budget.overrides))
     mesh = seed_mesh()
@@ -324,7 +324,7 @@ def _require_parts_alike(directory: pathlib.Path, budget: Budget, settings: dict
     for done in sorted(directory.glob(f"{stem}{PART}*.{extension}")):
         _require_same(directory, json.loads(done.read_text())["settings"], settings, task,
                       done=True)
-    ours = {part_file(CHECKPOINTS, part) for part in _parts_of(directory, budget)}
+    ours = {part_file(CHECKPOINTS, part) for part in _split(budget, done_seeds(directory))}
     others = sorted(p.name for p in directory.glob(f"{CHECKPOINTS}*") if p.name not in ours)
     if others:
         split = "whole" if CHECKPOINTS in others else "in parts"
@@ -340,8 +340,8 @@ def merge_parts(directory: pathlib.Path, budget: Budget, settings: dict, task: s
     was run under other settings than `settings`)."""
     cell_result = directory / RESULT
     given = json.loads(cell_result.read_text()) if cell_result.exists() else None
-    files = [directory / part_file(RESULT, part) for part in parts(
-        budget, len(given["seeds"]) if given and len(given["seeds"]) < budget.seeds else 0)]
+    files = [directory / part_file(RESULT, part)
+             for part in _split(budget, len(given["seeds"]) if given else 0)]
     if len(files) == 1 or not all(f.exists() for f in files):
         return
     done = [given if f == cell_result else json.loads(f.read_text()) for f in files]
