@@ -196,7 +196,7 @@ def test_a_run_on_an_earlier_physics_of_its_task_is_labelled_with_it():
 
 def test_table1_normalises_each_task_by_the_base_model_s_better_actor():
     def result(mu, td3, wall):
-        return {"final": {"mu": mu, "td3": td3}, "wall_s": wall}
+        return {"final": {"mu": mu, "td3": td3}, "wall_s": wall, "seeds": [1, 2][:len(mu)]}
     done = {("walker2d", "base"): result([100.0, 200.0], [150.0, 100.0], 100.0),
             ("walker2d", "pgps"): result([350.0, 350.0], [0.0, 0.0], 110.0),
             ("ant", "base"): result([10.0, 10.0], [20.0, 0.0], 50.0),
@@ -205,6 +205,26 @@ def test_table1_normalises_each_task_by_the_base_model_s_better_actor():
     # base per run: the better of μ and TD3 -> walker2d 175, ant 15; pgps 350 and 30 -> 2 both
     assert report.table1_rows(done) == [["base", "1.00", "1.000", "walker2d ant"],
                                         ["pgps", "2.00", "1.200", "walker2d ant"]]
+
+
+def test_table1_compares_wall_clocks_only_of_cells_that_ran_alike():
+    """A cell of other seeds, or run in parts (its wall-clock the sum of its programs'), is
+    scored but not timed against the Base model's."""
+    def result(seeds, wall, parts=()):
+        r = {"final": {"mu": [2.0] * len(seeds), "td3": [0.0] * len(seeds)}, "wall_s": wall,
+             "seeds": seeds}
+        return {**r, "parts": [{"seeds": p} for p in parts]} if parts else r
+    done = {("walker2d", "base"): result([1, 2], 100.0),
+            ("ant", "base"): result([1, 2], 50.0),
+            ("walker2d", "pgps"): result([1, 2, 3], 150.0),  # a third seed
+            ("ant", "pgps"): result([1, 2], 60.0),
+            ("walker2d", "q_filter"): result([1, 2], 300.0, parts=([1], [2])),
+            ("ant", "q_filter"): result([1, 2], 55.0, parts=([1], [2]))}
+    assert report.table1_rows(done) == [["base", "1.00", "1.000", "walker2d ant"],
+                                        ["pgps", "1.00", "1.200", "walker2d ant"],
+                                        ["q_filter", "1.00", "–", "walker2d ant"]]
+    done[("ant", "base")] = result([1, 2], 50.0, parts=([1], [2]))  # now run as q_filter ran
+    assert report.table1_rows(done)[2] == ["q_filter", "1.00", "1.100", "walker2d ant"]
 
 
 def test_figure4_reports_each_algorithms_actor_and_the_peers_found_beside_them(tmp_path):

@@ -307,7 +307,9 @@ def table1_rows(done: dict) -> list[list[str]]:
     """Table 1 of the paper from the done cells' results ({(task, model): result}): per model,
     the mean over tasks of its mean final return divided by the Base model's on the task (the
     Base model's final return of a run is the better of μ's and the TD3 actor's, as the paper
-    selects it), and the same ratio of wall-clock; only tasks where the Base model is done."""
+    selects it), and the same ratio of wall-clock; only tasks where the Base model is done.
+    Wall-clocks are compared only where both cells ran the same seeds in the same programs
+    (`_ran_alike`); "–" where no task's did."""
     def score(task, model):
         final = done[(task, model)]["final"]
         per_run = np.maximum(final["mu"], final["td3"]) if model == "base" else final["mu"]
@@ -319,6 +321,17 @@ def table1_rows(done: dict) -> list[list[str]]:
         if not tasks:
             continue
         ratio = np.mean([score(t, model) / score(t, "base") for t in tasks])
-        wall = np.mean([done[(t, model)]["wall_s"] / done[(t, "base")]["wall_s"] for t in tasks])
-        rows.append([model, f"{ratio:.2f}", f"{wall:.3f}", " ".join(tasks)])
+        walls = [done[(t, model)]["wall_s"] / done[(t, "base")]["wall_s"] for t in tasks
+                 if _ran_alike(done[(t, model)], done[(t, "base")])]
+        wall = f"{np.mean(walls):.3f}" if walls else "–"
+        rows.append([model, f"{ratio:.2f}", wall, " ".join(tasks)])
     return rows
+
+
+def _ran_alike(result: dict, other: dict) -> bool:
+    """Whether two cells' wall-clocks measure the same work: the same seeds, vmapped in the
+    same programs (a cell run in parts sums its parts' wall-clocks, and vmapped seeds cost
+    less than their number times one)."""
+    def programs(r):
+        return [p["seeds"] for p in r.get("parts", [])] or [r["seeds"]]
+    return programs(result) == programs(other)
