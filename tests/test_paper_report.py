@@ -196,7 +196,8 @@ def test_a_run_on_an_earlier_physics_of_its_task_is_labelled_with_it():
 
 def test_table1_normalises_each_task_by_the_base_model_s_better_actor():
     def result(mu, td3, wall):
-        return {"final": {"mu": mu, "td3": td3}, "wall_s": wall, "seeds": [1, 2][:len(mu)]}
+        return {"final": {"mu": mu, "td3": td3}, "wall_s": wall,
+                "seeds": list(range(1, len(mu) + 1))}
     done = {("walker2d", "base"): result([100.0, 200.0], [150.0, 100.0], 100.0),
             ("walker2d", "pgps"): result([350.0, 350.0], [0.0, 0.0], 110.0),
             ("ant", "base"): result([10.0, 10.0], [20.0, 0.0], 50.0),
@@ -221,10 +222,15 @@ def test_table1_compares_wall_clocks_only_of_cells_that_ran_alike():
             ("walker2d", "q_filter"): result([1, 2], 300.0, parts=([1], [2])),
             ("ant", "q_filter"): result([1, 2], 55.0, parts=([1], [2]))}
     assert report.table1_rows(done) == [["base", "1.00", "1.000", "walker2d ant"],
-                                        ["pgps", "1.00", "1.200", "walker2d ant"],
+                                        ["pgps", "1.00", "1.200 (ant)", "walker2d ant"],
                                         ["q_filter", "1.00", "–", "walker2d ant"]]
     done[("ant", "base")] = result([1, 2], 50.0, parts=([1], [2]))  # now run as q_filter ran
-    assert report.table1_rows(done)[2] == ["q_filter", "1.00", "1.100", "walker2d ant"]
+    assert report.table1_rows(done)[2] == ["q_filter", "1.00", "1.100 (ant)", "walker2d ant"]
+    done[("walker2d", "base")] = result([1, 2, 3], 100.0, parts=([1, 2], [3]))
+    done[("walker2d", "q_filter")] = result([1, 2, 3], 300.0, parts=([1], [2, 3]))
+    assert report.table1_rows(done)[2] == ["q_filter", "1.00", "1.100 (ant)", "walker2d ant"]
+    done[("walker2d", "q_filter")] = result([1, 2, 3], 300.0, parts=([1, 2], [3]))
+    assert report.table1_rows(done)[2] == ["q_filter", "1.00", "2.050", "walker2d ant"]
 
 
 def test_figure4_reports_each_algorithms_actor_and_the_peers_found_beside_them(tmp_path):

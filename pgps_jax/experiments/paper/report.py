@@ -309,7 +309,8 @@ def table1_rows(done: dict) -> list[list[str]]:
     Base model's final return of a run is the better of μ's and the TD3 actor's, as the paper
     selects it), and the same ratio of wall-clock; only tasks where the Base model is done.
     Wall-clocks are compared only where both cells ran the same seeds in the same programs
-    (`_ran_alike`); "–" where no task's did."""
+    (`_ran_alike`), the tasks compared named after the ratio where they are fewer; "–" where
+    no task's cells ran alike."""
     def score(task, model):
         final = done[(task, model)]["final"]
         per_run = np.maximum(final["mu"], final["td3"]) if model == "base" else final["mu"]
@@ -321,9 +322,11 @@ def table1_rows(done: dict) -> list[list[str]]:
         if not tasks:
             continue
         ratio = np.mean([score(t, model) / score(t, "base") for t in tasks])
-        walls = [done[(t, model)]["wall_s"] / done[(t, "base")]["wall_s"] for t in tasks
-                 if _ran_alike(done[(t, model)], done[(t, "base")])]
-        wall = f"{np.mean(walls):.3f}" if walls else "–"
+        timed = [t for t in tasks if _ran_alike(done[(t, model)], done[(t, "base")])]
+        wall = np.mean([done[(t, model)]["wall_s"] / done[(t, "base")]["wall_s"]
+                        for t in timed]) if timed else None
+        wall = ("–" if wall is None else f"{wall:.3f}" if timed == tasks
+                else f"{wall:.3f} ({' '.join(timed)})")
         rows.append([model, f"{ratio:.2f}", wall, " ".join(tasks)])
     return rows
 
@@ -331,7 +334,8 @@ def table1_rows(done: dict) -> list[list[str]]:
 def _ran_alike(result: dict, other: dict) -> bool:
     """Whether two cells' wall-clocks measure the same work: the same seeds, vmapped in the
     same programs (a cell run in parts sums its parts' wall-clocks, and vmapped seeds cost
-    less than their number times one)."""
+    less than their number times one). Not whether they ran on the same GPU or beside the
+    same other work: their records say where they ran."""
     def programs(r):
         return [p["seeds"] for p in r.get("parts", [])] or [r["seeds"]]
     return programs(result) == programs(other)
