@@ -1,7 +1,8 @@
 """PGPS in JAX: `PGPS(config, env)` with pure `init`, `generation_step` and `evaluate` over a
 `TrainState`; `for_task` gives the paper's configuration of a task and `make_env` the task.
 The baselines built from the same parts share that interface: `make_agent(algo, config, env)`
-with `for_task(task, algo)` (`CEMAlone`, `TD3Alone`, `CEMRL`).
+with `for_task(task, algo)` (`CEMAlone`, `TD3Alone`, `CEMRL`). `couplings_of` switches PGPS's
+couplings per state, to vmap Table 1's models in one program.
 
     from pgps_jax import PGPS, for_task, make_env
 
@@ -22,6 +23,8 @@ _PUBLIC = {
     "PGPSConfig": "pgps_jax.agent.config",
     "for_task": "pgps_jax.agent.config",
     "EvaluationConfig": "pgps_jax.agent.config",
+    "Couplings": "pgps_jax.agent.couplings",
+    "couplings_of": "pgps_jax.agent.couplings",
     "make_env": "pgps_jax.envs",
 }
 __all__ = list(_PUBLIC)

@@ -1,5 +1,6 @@
-"""The README's "Using the algorithm from JAX" snippet runs as written, on the point mass
-with a tiny configuration in place of hopper's (the API is what it checks)."""
+"""The README's "Using the algorithm from JAX" snippets run as written, one after the other,
+on the point mass with a tiny configuration in place of hopper's (the API is what they
+check)."""
 
 import pathlib
 import re
@@ -12,9 +13,10 @@ from pgps_jax.envs.point import PointMass
 README = pathlib.Path(__file__).resolve().parent.parent / "README.md"
 
 
-def _snippet() -> str:
+def _snippets() -> str:
     section = README.read_text().split("## Using the algorithm from JAX", 1)[1]
-    return re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    section = section.split("\n## ", 1)[0]
+    return "\n".join(re.findall(r"```python\n(.*?)```", section, re.S))
 
 
 def test_the_readme_snippet_runs(monkeypatch, capsys):
@@ -30,10 +32,14 @@ def test_the_readme_snippet_runs(monkeypatch, capsys):
                         lambda **settings: asked.append(settings) or tiny_tests)
     monkeypatch.setattr(pgps_jax.envs, "make_env", lambda task: asked.append(task) or PointMass())
     namespace = {}
-    exec(compile(_snippet(), str(README), "exec"), namespace)
-    assert asked == [dict(every=10_000, episodes=10, steps=1000), "hopper", "hopper"]
+    exec(compile(_snippets(), str(README), "exec"), namespace)
+    assert asked == [dict(every=10_000, episodes=10, steps=1000), "hopper", "hopper",
+                     "hopper", "hopper"]
     printed = capsys.readouterr().out.split("\n")
     assert len(printed) >= 3  # evaluations that ended, then the final one
     assert int(namespace["state"].generation) == 10
     assert namespace["states"].generation.shape == (5,)
     assert namespace["metrics"]["td3/critic_loss"].shape == (5,)
+    pair = namespace["pair"]  # Base and PGPS, one state each
+    assert pair.generation.shape == (2,)
+    assert pair.couplings.q_filter.tolist() == [False, True]

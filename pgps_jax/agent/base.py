@@ -20,6 +20,7 @@ from pgps_jax.agent import buffer as replay
 from pgps_jax.agent import evaluation
 from pgps_jax.agent.cem import CEMState
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, check_for_algorithm
+from pgps_jax.agent.couplings import Couplings
 from pgps_jax.agent.evaluation import EvaluationState
 from pgps_jax.agent.metrics import Metric
 from pgps_jax.agent.networks import actor_flattener
@@ -46,6 +47,9 @@ class TrainState:
     next_population: jax.Array | None = None
     """[N, P] the population the next generation plays, drawn (and half of it trained) at
     the end of this one (CEM-RL)."""
+    couplings: Couplings | None = None
+    """PGPS's couplings switched by this state (`pgps_jax.agent.couplings`); None: as its
+    agent's configuration has them."""
 
 
 @chex.dataclass(frozen=True)

@@ -33,6 +33,7 @@ from pgps_jax.agent import buffer as replay
 from pgps_jax.agent import cem, qfilter
 from pgps_jax.agent.base import Agent, Played, TrainState
 from pgps_jax.agent.config import PGPSConfig
+from pgps_jax.agent.couplings import Couplings
 from pgps_jax.agent.metrics import Metric, generation_metrics, population_return_key
 from pgps_jax.agent.networks import first_q, flatten
 
@@ -41,12 +42,16 @@ PHASES = ("population_generation", "actors_evaluation", "cem_update", "td3_updat
 named scopes of the programs' operations (metadata only: they change nothing computed)."""
 
 
-def episode_limit(total_steps: jax.Array, config: PGPSConfig) -> jax.Array:
-    """Eq. 4 with floor division: T = min(T_init + 100·⌊steps / T_interval⌋, T_max)."""
-    if not config.increasing_steps:
+def episode_limit(total_steps: jax.Array, config: PGPSConfig,
+                  increasing: bool | jax.Array | None = None) -> jax.Array:
+    """Eq. 4 with floor division: T = min(T_init + 100·⌊steps / T_interval⌋, T_max); T_max
+    without increasing steps (`increasing`, by default the configuration's)."""
+    increasing = config.increasing_steps if increasing is None else increasing
+    if increasing is False:
         return jnp.asarray(config.t_max, jnp.int32)
     grown = config.t_init + config.t_increment * (total_steps // config.t_interval)
-    return jnp.minimum(grown, config.t_max).astype(jnp.int32)
+    limit = jnp.minimum(grown, config.t_max).astype(jnp.int32)
+    return limit if increasing is True else jnp.where(increasing, limit, config.t_max)
 
 
 def fell_behind(td3_return: jax.Array, population_returns: jax.Array,
@@ -86,12 +91,15 @@ class PGPS(Agent):
     """μ, the TD3 actor and the elite; μ is reported."""
 
     # --- init -------------------------------------------------------------------------
-    def init(self, key: jax.Array, eval_key: jax.Array | None = None) -> TrainState:
+    def init(self, key: jax.Array, eval_key: jax.Array | None = None,
+             couplings: Couplings | None = None) -> TrainState:
         """Fresh TD3, μ = the TD3 actor's parameters, and a buffer filled by the random
         warm-up.
 
         eval_key: start states of every evaluation (the paper uses seed + 100); by default
         derived from `key`. The first generation evaluates the initial μ.
+        couplings: the state's own switches of the couplings (`couplings.couplings_of`: one of
+        Table 1's models); by default the configuration's.
         """
         config = self.config
         td3_key, warmup_key, next_key = jax.random.split(key, 3)
@@ -108,7 +116,7 @@ class PGPS(Agent):
                           total_steps=jnp.asarray(total_steps, jnp.int32),
                           evaluation=self.idle_evaluation(
                               jnp.stack([mean] * len(self.evaluated)), key, eval_key),
-                          key=next_key, kept_population=kept)
+                          key=next_key, kept_population=kept, couplings=couplings)
 
     # --- one generation ---------------------------------------------------------------
     def play(self, state: TrainState, active: jax.Array | bool = True
@@ -129,12 +137,14 @@ class PGPS(Agent):
         with jax.named_scope("population_generation"):
             population = self.population(state, sample_key, candidate_key, states_key)
             td3_flat = flatten(state.td3.actor)
-            if config.pg_guides_ea:
-                population = jnp.where(td3_turn, population.at[n - 1].set(td3_flat),
-                                       population)
+            pg_guides_ea = self.switch(state, "pg_guides_ea")
+            if pg_guides_ea is not False:
+                population = jnp.where(td3_turn & pg_guides_ea,
+                                       population.at[n - 1].set(td3_flat), population)
         if state.kept_population is not None:
             state = state.replace(kept_population=population)  # with the injected TD3 actor
-        limit = episode_limit(state.total_steps, config)
+        limit = episode_limit(state.total_steps, config,
+                              self.switch(state, "increasing_steps"))
         actors, limits = population, jnp.full((n,), limit)
         if config.td3_probe:
             actors = jnp.concatenate([population, td3_flat[None]])
@@ -165,12 +175,15 @@ class PGPS(Agent):
             new_cem = cem.tell(state.cem, played.population, returns, top_k=config.top_k,
                                sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
                                divide_by_k=config.cem_divide_by_k)
-        td3_in_episodes = config.pg_guides_ea or config.td3_probe
-        td3_return = self._td3_return(episodes.returns)
-        if config.ea_guides_pg:
-            guided = td3_turn & fell_behind(td3_return, returns, config.fell_behind_rule)
-        else:
+        pg_guides_ea = self.switch(state, "pg_guides_ea")
+        ea_guides_pg = self.switch(state, "ea_guides_pg")
+        td3_in_episodes = pg_guides_ea | config.td3_probe
+        td3_return = self._td3_return(episodes.returns, pg_guides_ea)
+        if ea_guides_pg is False:
             guided = jnp.zeros((), bool)
+        else:
+            guided = (td3_turn & fell_behind(td3_return, returns, config.fell_behind_rule)
+                      & ea_guides_pg)
 
         num_rollout = episodes.lengths.shape[0]
         num_update = interaction_steps // config.update_blocks
@@ -190,7 +203,7 @@ class PGPS(Agent):
         metrics = {
             **self.counters_and_evaluation(new_state, played),
             "gen/q_filter_active": ((state.total_steps >= config.q_filter_start)
-                                    & config.q_filter),
+                                    & self.switch(state, "q_filter")),
             "pop/return_mean": jnp.mean(returns),
             "pop/return_std": jnp.std(returns),
             "cem/elite_return": jnp.max(returns),
@@ -217,10 +230,13 @@ class PGPS(Agent):
         population = cem.ask(sample_key, state.cem, n)
         if config.elitism:
             population = population.at[0].set(state.cem.elite)
-        if state.kept_population is not None:
-            population = jnp.where(state.total_steps >= config.q_filter_start, population,
-                                   state.kept_population)
-        if not config.q_filter:
+        q_filter = self.switch(state, "q_filter")
+        if state.kept_population is not None:  # kept by a state that Q-filters, until it does
+            resampled = state.total_steps >= config.q_filter_start
+            if q_filter is not True:
+                resampled = resampled | ~q_filter
+            population = jnp.where(resampled, population, state.kept_population)
+        if q_filter is False:
             return population
 
         def filtered(population):
@@ -231,18 +247,27 @@ class PGPS(Agent):
             return population.at[half:].set(
                 qfilter.select_best(candidates, scores, config.num_elite_filtered))
 
-        return jax.lax.cond(state.total_steps >= config.q_filter_start, filtered,
+        return jax.lax.cond((state.total_steps >= config.q_filter_start) & q_filter, filtered,
                             lambda population: population, population)
 
-    def _td3_return(self, returns: jax.Array) -> jax.Array:
+    def switch(self, state: TrainState, coupling: str) -> bool | jax.Array:
+        """Whether `coupling` (`couplings.SWITCHES`) is on: the configuration's Python bool,
+        or the state's own switch where it carries `Couplings`."""
+        if state.couplings is None:
+            return getattr(self.config, coupling)
+        return getattr(state.couplings, coupling)
+
+    def _td3_return(self, returns: jax.Array, pg_guides_ea: bool | jax.Array) -> jax.Array:
         """The TD3 actor's return: slot N−1 (PG→EA), the probe slot N, or NaN where it never
         plays."""
         config = self.config
-        if config.pg_guides_ea:
+        if pg_guides_ea is True:
             return returns[config.pop_size - 1]
-        if config.td3_probe:
+        if config.td3_probe:  # never beside switched couplings (`couplings_of`)
             return returns[config.pop_size]
-        return jnp.asarray(jnp.nan)
+        if pg_guides_ea is False:
+            return jnp.asarray(jnp.nan)
+        return jnp.where(pg_guides_ea, returns[config.pop_size - 1], jnp.nan)
 
     # --- evaluation -------------------------------------------------------------------
     def evaluated_actors(self, state: TrainState) -> jax.Array:
