@@ -23,7 +23,6 @@ _PUBLIC = {
     "PGPSConfig": "pgps_jax.agent.config",
     "for_task": "pgps_jax.agent.config",
     "EvaluationConfig": "pgps_jax.agent.config",
-    "Couplings": "pgps_jax.agent.couplings",
     "couplings_of": "pgps_jax.agent.couplings",
     "make_env": "pgps_jax.envs",
 }

@@ -43,13 +43,14 @@ class TrainState:
     beta: jax.Array | None = None        # [] distance weight β of L^A (eq. 2-3), persists
     kept_population: jax.Array | None = None
     """[N, P] the population kept until Q-filtering starts (PGPS by default,
-    `PGPSConfig.keeps_population`; None: resampled every generation)."""
+    `PGPSConfig.keeps_population`; None: resampled every generation, as is a state whose own
+    Q-filtering is switched off, which leaves it unused)."""
     next_population: jax.Array | None = None
     """[N, P] the population the next generation plays, drawn (and half of it trained) at
     the end of this one (CEM-RL)."""
     couplings: Couplings | None = None
-    """PGPS's couplings switched by this state (`pgps_jax.agent.couplings`); None: as its
-    agent's configuration has them."""
+    """PGPS's couplings switched by this state (`pgps_jax.agent.couplings.couplings_of`);
+    None: as its agent's configuration has them."""
 
 
 @chex.dataclass(frozen=True)

@@ -234,7 +234,7 @@ class PGPS(Agent):
         if state.kept_population is not None:  # kept by a state that Q-filters, until it does
             resampled = state.total_steps >= config.q_filter_start
             if q_filter is not True:
-                resampled = resampled | ~q_filter
+                resampled = resampled | jnp.logical_not(q_filter)
             population = jnp.where(resampled, population, state.kept_population)
         if q_filter is False:
             return population
@@ -251,11 +251,11 @@ class PGPS(Agent):
                             lambda population: population, population)
 
     def switch(self, state: TrainState, coupling: str) -> bool | jax.Array:
-        """Whether `coupling` (`couplings.SWITCHES`) is on: the configuration's Python bool,
-        or the state's own switch where it carries `Couplings`."""
+        """Whether `coupling` (`couplings.SWITCHES`) is on: the configuration's, a Python bool,
+        or the state's own, a bool array, where it carries `Couplings`."""
         if state.couplings is None:
-            return getattr(self.config, coupling)
-        return getattr(state.couplings, coupling)
+            return bool(getattr(self.config, coupling))
+        return jnp.asarray(getattr(state.couplings, coupling), bool)
 
     def _td3_return(self, returns: jax.Array, pg_guides_ea: bool | jax.Array) -> jax.Array:
         """The TD3 actor's return: slot N−1 (PG→EA), the probe slot N, or NaN where it never
@@ -263,7 +263,7 @@ class PGPS(Agent):
         config = self.config
         if pg_guides_ea is True:
             return returns[config.pop_size - 1]
-        if config.td3_probe:  # never beside switched couplings (`couplings_of`)
+        if config.td3_probe:  # a state's PG→EA is off where the probe is (`couplings_of`)
             return returns[config.pop_size]
         if pg_guides_ea is False:
             return jnp.asarray(jnp.nan)
