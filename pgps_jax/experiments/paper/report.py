@@ -323,10 +323,10 @@ def table1_rows(done: dict) -> list[list[str]]:
             continue
         ratio = np.mean([score(t, model) / score(t, "base") for t in tasks])
         timed = [t for t in tasks if _ran_alike(done[(t, model)], done[(t, "base")])]
-        wall = np.mean([done[(t, model)]["wall_s"] / done[(t, "base")]["wall_s"]
-                        for t in timed]) if timed else None
-        wall = ("–" if wall is None else f"{wall:.3f}" if timed == tasks
-                else f"{wall:.3f} ({' '.join(timed)})")
+        walls = [done[(t, model)]["wall_s"] / done[(t, "base")]["wall_s"] for t in timed]
+        wall = f"{np.mean(walls):.3f}" if timed else "–"
+        if timed and timed != tasks:
+            wall += f" ({' '.join(timed)})"
         rows.append([model, f"{ratio:.2f}", wall, " ".join(tasks)])
     return rows
 

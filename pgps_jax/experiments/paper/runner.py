@@ -192,9 +192,9 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
              part: Optional[Seeds] = None) -> dict:
     """Runs `cell` to `budget.steps` in `directory` (continuing its checkpoint if it has one)
     and returns its result (as `result.json` holds it); with `part` (one of `parts(budget,
-    done_seeds(directory))`),
-    only those seeds, returning the part's result (the cell's, where the cell was done
-    whole) and merging every part's into the cell's once all are done. A done cell or part
+    done_seeds(directory))`), only those seeds, returning the part's result (the cell's,
+    where the cell was done whole) and merging every part's into the cell's once all are
+    done. A done cell or part
     is not run again; a part whose cell holds parts or checkpoints of other settings or of
     another split is refused. `on_generation(generation, env_steps [the part's seeds])` is
     called after every generation."""
