@@ -74,8 +74,8 @@ def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrup
         assert [int(r["q_filter_active"]) for r in rows] == [
             int(step >= TINY["q_filter_start"]) for step in began]
     header, rows = read_csv(out / "figure4" / command.FINAL_RETURNS)
-    assert header == ["task", "config", "seed", "env_steps", "mu_final", "td3_final",
-                      "elite_final"]
+    assert header == ["task", "config", "seed", "env_steps", "elite_final", "mu_final",
+                      "td3_final"]
     assert [(r["task"], r["seed"]) for r in rows] == [("hopper", "1"), ("hopper", "2")]
     assert [float(r["mu_final"]) for r in rows] == pytest.approx(result["final"]["mu"])
     assert json.loads((cell / runner.RESULT).read_text()) == result
@@ -146,6 +146,19 @@ def test_the_report_alone_writes_the_table_of_final_returns_again(uninterrupted)
                          "--reference", str(REPO / command.REFERENCE)]) == 0
     assert table.read_text() == before
 
+
+def test_the_table_of_final_returns_keeps_its_columns_whichever_cell_comes_first(tmp_path):
+    pgps = {"task": "ant", "config": "pgps", "seeds": [1], "env_steps": [1000],
+            "final": {"mu": [5.0], "td3": [4.0], "elite": [3.0]}}
+    sac = {"task": "hopper", "config": "brax_sac", "seeds": [1], "env_steps": [999],
+           "final": {"policy": [2.0]}}
+    tables = []
+    for name, results in (("a.csv", [pgps, sac]), ("b.csv", [sac, pgps])):
+        command.write_final_returns(tmp_path / name, results)
+        header, rows = read_csv(tmp_path / name)
+        tables.append((header, sorted(map(tuple, (r.values() for r in rows)))))
+    assert tables[0] == tables[1]
+    assert tables[0][0][4:] == ["elite_final", "mu_final", "policy_final", "td3_final"]
 
 def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
     out, _ = uninterrupted

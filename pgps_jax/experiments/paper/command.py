@@ -161,8 +161,9 @@ def write_summary(experiment: str, out: pathlib.Path, reference: pathlib.Path
 
 def write_final_returns(path: pathlib.Path, results: list[dict]) -> None:
     """One row per done cell and seed: the final test return of each actor its algorithm
-    evaluates (μ, the TD3 actor, the elite; empty where it has none)."""
-    actors = list(dict.fromkeys(a for r in results for a in r["final"]))
+    evaluates (μ, the TD3 actor, the elite; empty where it has none), in columns of a fixed
+    order whichever cells are done."""
+    actors = sorted({a for r in results for a in r["final"]})
     header = ["task", "config", "seed", "env_steps"] + [f"{a}_final" for a in actors]
     rows = [[r["task"], r["config"], seed, r["env_steps"][i],
              *(r["final"][a][i] if a in r["final"] else "" for a in actors)]
