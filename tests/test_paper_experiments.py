@@ -160,6 +160,7 @@ def test_the_table_of_final_returns_keeps_its_columns_whichever_cell_comes_first
     assert tables[0] == tables[1]
     assert tables[0][0][4:] == ["elite_final", "mu_final", "policy_final", "td3_final"]
 
+
 def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
     out, _ = uninterrupted
     longer = dataclasses.replace(BUDGET, steps=800)
