@@ -4,9 +4,10 @@ and CEM update, per cumulative model (Base; + P→E; + E→P; + Q-filter; + incr
 For each model of the `table1` grid on a task (the paper's configuration with the model's
 switches), one late-run generation (T = T_max, Q-filtering due, a full buffer of random rows,
 no test evaluation under way) runs `--generations` times under `jax.profiler.trace`. A task's
-five programs compile side by side, then run one after the other, each alone on the device,
-after one untimed trace: a process's first trace runs slower (1.9× in `--smoke` on the CPU),
-which would have shrunk every model's time normalised by the Base model's, timed first. Every
+five programs compile side by side (their autotuning sharing the device, as a run's programs
+do in `compile_ahead`), then each is traced alone, one after the other, after one untimed
+trace: a process's first trace runs slower (1.9× in `--smoke` on the CPU) and would inflate
+the Base model's total, the denominator, since Base is traced first. Every
 device operation of the trace is attributed to the phase whose JAX named scope
 (`pgps_jax.agent.pgps.PHASES`) its HLO instruction carries; the rest (key splitting,
 metrics) is `other`. Times are per generation and, as in the paper, normalised by the Base
@@ -181,8 +182,9 @@ def model_program(task: str, cell, smoke: bool) -> tuple[Callable, Any]:
     return jax.jit(agent.generation_step), state
 
 
-def model_split(model: str, compiled, state, generations: int) -> dict:
-    """The time split of one model's compiled late-run generation (run before), alone."""
+def model_split(model: str, compiled: jax.stages.Compiled, state, generations: int) -> dict:
+    """The time split of one model's compiled late-run generation, traced alone; the program
+    must have run once already."""
     with tempfile.TemporaryDirectory() as log_dir:
         trace = trace_of(lambda: [compiled(state) for _ in range(generations)], log_dir)
         ms, unattributed = split(trace, phases_of(compiled.as_text()), generations,
@@ -196,16 +198,17 @@ def task_split(task: str, generations: int, smoke: bool) -> list[dict]:
     by side (`compile_ahead`), then each is timed alone, one after the other."""
     programs = {cell.config: model_program(task, cell, smoke)
                 for cell in cells("table1", (task,))}
-    futures = compile_ahead({model: (step, (state,))
-                             for model, (step, state) in programs.items()})
+    states = {model: state for model, (_, state) in programs.items()}
+    futures = compile_ahead({model: (step, (states[model],))
+                             for model, (step, _) in programs.items()})
     compiled = {model: future.result() for model, future in futures.items()}
-    for model, (_, state) in programs.items():  # every program's first run before any is timed
-        jax.block_until_ready(compiled[model](state))
-    first, (_, state) = next(iter(programs.items()))
+    for model in compiled:  # every program's first run before any is traced
+        jax.block_until_ready(compiled[model](states[model]))
+    base = next(iter(compiled))
     with tempfile.TemporaryDirectory() as log_dir:  # a process's first trace runs slower
-        trace_of(lambda: compiled[first](state), log_dir)
-    return [model_split(model, compiled[model], state, generations)
-            for model, (_, state) in programs.items()]
+        trace_of(lambda: compiled[base](states[base]), log_dir)
+    return [model_split(model, compiled[model], states[model], generations)
+            for model in compiled]
 
 
 def main():
