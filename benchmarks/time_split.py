@@ -4,18 +4,18 @@ and CEM update, per cumulative model (Base; + P→E; + E→P; + Q-filter; + incr
 For each model of the `table1` grid on a task (the paper's configuration with the model's
 switches), one late-run generation (T = T_max, Q-filtering due, a full buffer of random rows,
 no test evaluation under way) runs `--generations` times under `jax.profiler.trace`. A task's
-five programs compile side by side (their autotuning sharing the device, as a run's programs
-do in `compile_ahead`), then each is traced alone, one after the other, after one untimed
-trace: a process's first trace runs slower (1.9× in `--smoke` on the CPU) and would inflate
-the Base model's total, the denominator, since Base is traced first. Every
-device operation of the trace is attributed to the phase whose JAX named scope
-(`pgps_jax.agent.pgps.PHASES`) its HLO instruction carries; the rest (key splitting,
-metrics) is `other`. Times are per generation and, as in the paper, normalised by the Base
-model's total. A late-run generation stands for the whole run here: the phases' shares at
-T = T_max, not their sums over a run's schedule of T (so the `+ increasing steps` row cannot
-show what its schedule saves). `actors_evaluation` includes stepping the idle slots of the
-test evaluation beside the population; a kernel that XLA fused from two phases counts for the
-phase of its output. The operations that no phase names are listed under `unattributed`.
+five programs compile side by side (their autotuning sharing the device, as a run's programs do
+in `compile_ahead`), then each is traced alone, one after the other, after one untimed trace: a
+process's first trace runs slower (1.9× in `--smoke` on the CPU) and would inflate the Base
+model's total, the denominator, since Base is traced first. Every device operation of the trace
+is attributed to the phase whose JAX named scope (`pgps_jax.agent.pgps.PHASES`) its HLO
+instruction carries; the rest (key splitting, metrics) is `other`. Times are per generation
+and, as in the paper, normalised by the Base model's total. A late-run generation stands for
+the whole run here: the phases' shares at T = T_max, not their sums over a run's schedule of T
+(so the `+ increasing steps` row cannot show what its schedule saves). `actors_evaluation`
+includes stepping the idle slots of the test evaluation beside the population; a kernel that
+XLA fused from two phases counts for the phase of its output. The operations that no phase
+names are listed under `unattributed`.
 
     python -m benchmarks.time_split --tasks halfcheetah walker2d ant
     python -m benchmarks.time_split --tasks halfcheetah --smoke   # tiny sizes: a CPU check

@@ -194,10 +194,9 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     and returns its result (as `result.json` holds it); with `part` (one of `parts(budget,
     done_seeds(directory))`), only those seeds, returning the part's result (the cell's,
     where the cell was done whole) and merging every part's into the cell's once all are
-    done. A done cell or part
-    is not run again; a part whose cell holds parts or checkpoints of other settings or of
-    another split is refused. `on_generation(generation, env_steps [the part's seeds])` is
-    called after every generation."""
+    done. A done cell or part is not run again; a part whose cell holds parts or checkpoints
+    of other settings or of another split is refused. `on_generation(generation, env_steps
+    [the part's seeds])` is called after every generation."""
     seeds_done = done_seeds(directory)
     if part is None and 0 < seeds_done < budget.seeds:
         raise UsageError(f"{directory} holds this cell done with {seeds_done} seeds; run the "
