@@ -1,18 +1,20 @@
 """Table 1's computational time split: TD3 update, actors evaluation, population generation
 and CEM update, per cumulative model (Base; + P→E; + E→P; + Q-filter; + increasing steps).
 
-For each model of the `table1` grid on a task (the paper's configuration with the model's
-switches), one late-run generation (T = T_max, Q-filtering due, a full buffer of random rows,
-no test evaluation under way) runs `--generations` times under `jax.profiler.trace`. A task's
-five programs compile side by side (their autotuning sharing the device, as a run's programs do
-in `compile_ahead`), then each is traced alone, one after the other, after one untimed trace: a
-process's first trace runs slower (1.9× in `--smoke` on the CPU) and would inflate the Base
-model's total, the denominator, since Base is traced first. Every device operation of the trace
-is attributed to the phase whose JAX named scope (`pgps_jax.agent.pgps.PHASES`) its HLO
-instruction carries; the rest (key splitting, metrics) is `other`. Times are per generation
-and, as in the paper, normalised by the Base model's total. A late-run generation stands for
-the whole run here: the phases' shares at T = T_max, not their sums over a run's schedule of T
-(so the `+ increasing steps` row cannot show what its schedule saves). `actors_evaluation`
+On each task, one late-run generation (the paper's configuration: T = T_max, Q-filtering due, a
+full buffer of random rows, no test evaluation under way) runs `--generations` times per model
+of the `table1` grid under `jax.profiler.trace`. The models are states of one program that
+switch their couplings (`pgps_jax.agent.couplings`), so a task compiles once. Two things make
+the generation stand for a late run's: every episode lasts T (`FullEpisodes`; the initialised
+actors would fall at once on hopper, walker2d and ant), and the TD3 actor fell behind
+(`lagging_generation`), so the models with EA→PG pay for L^A. Each model is traced alone, one
+after the other, after one untimed trace: a process's first trace runs slower (1.9× in
+`--smoke` on the CPU) and would inflate the Base model's total, the denominator. Every device
+operation of the trace is attributed to the phase whose JAX named scope
+(`pgps_jax.agent.pgps.PHASES`) its HLO instruction carries; the rest (key splitting, metrics)
+is `other`. Times are per generation and, as in the paper, normalised by the Base model's
+total. The phases' shares at T = T_max stand for their sums over a run's schedule of T (so
+the `+ increasing steps` row cannot show what its schedule saves). `actors_evaluation`
 includes stepping the idle slots of the test evaluation beside the population; a kernel that
 XLA fused from two phases counts for the phase of its output. The operations that no phase
 names are listed under `unattributed`.
@@ -25,23 +27,26 @@ Writes `benchmarks/results/time_split.json`.
 
 import argparse
 import collections
+import functools
 import glob
 import gzip
 import json
 import os
 import re
 import tempfile
+import time
 from typing import Any, Callable, Optional, Sequence
 
+from brax.envs.base import Wrapper
 import jax
 import jax.numpy as jnp
 
 from benchmarks.profile_generation import late_state
 from benchmarks.timing import provenance
 from pgps_jax.agent.config import EvaluationConfig, for_task
+from pgps_jax.agent.couplings import couplings_of
 from pgps_jax.agent.pgps import PGPS, PHASES
-from pgps_jax.cli.compile_ahead import compile_ahead
-from pgps_jax.envs import make_env
+from pgps_jax.envs import State, make_env
 from pgps_jax.envs.physics import default_platform
 from pgps_jax.experiments.paper.grid import cells
 
@@ -171,20 +176,50 @@ def trace_of(run: Callable[[], Any], log_dir: str) -> str:
     return glob.glob(os.path.join(log_dir, "**", "perfetto_trace.json.gz"), recursive=True)[0]
 
 
-def model_program(task: str, cell, smoke: bool) -> tuple[Callable, Any]:
-    """One model's jitted generation step on `task`, and the late-run state to time it on."""
-    config = for_task(task, **dict(cell.overrides), **(SMOKE if smoke else {}))
-    env = make_env(task)
+class FullEpisodes(Wrapper):
+    """The task with its termination off: every episode lasts its limit T, as a late run's
+    actors mostly do. A freshly initialised actor falls within tens of steps on hopper,
+    walker2d and ant, and both the rollout's loop (it stops once every episode has ended) and
+    the TD3 updates (as many as the generation's env steps) would shrink with it. The physics
+    costs the same per step whatever the state."""
+
+    def step(self, state: State, action: jax.Array) -> State:
+        stepped = self.env.step(state, action)
+        return stepped.replace(done=jnp.zeros_like(stepped.done))
+
+
+def lagging_generation(agent: PGPS, state) -> tuple[Any, dict]:
+    """One generation (`play`, then `learn`) in which the TD3 actor, where it joined the
+    population (PG→EA), scored lowest: it fell behind, so a model with EA→PG trains on L^A
+    (eq. 2-3) and pays for it; over a run, only the generations it lags in do."""
+    state, played = agent.play(state)
+    returns = played.episodes.returns
+    td3_slot = agent.config.pop_size - 1
+    lowest = returns.at[td3_slot].set(jnp.min(returns) - 1.0)
+    played = played.replace(episodes=played.episodes.replace(returns=lowest))
+    return agent.learn(state, played)
+
+
+def task_program(task: str, smoke: bool) -> tuple[Callable, dict[str, Any]]:
+    """The task's jitted `lagging_generation` (the paper's configuration, `FullEpisodes`) and,
+    per model of the `table1` grid (Base first), the late-run state that switches the
+    model's couplings (`couplings_of`): one program times every model."""
+    sizes = SMOKE if smoke else {}
+    config = for_task(task, **sizes)
+    env = FullEpisodes(make_env(task))
     agent = PGPS(config, env, EvaluationConfig(steps=20) if smoke else EvaluationConfig())
     state = late_state(config, env)
     state = state.replace(evaluation=state.evaluation.replace(  # none under way
         next_due=jnp.asarray(2**30, jnp.int32)))
-    return jax.jit(agent.generation_step), state
+    states = {cell.config: state.replace(couplings=couplings_of(
+        config, for_task(task, **dict(cell.overrides), **sizes)))
+        for cell in cells("table1", (task,))}
+    return jax.jit(functools.partial(lagging_generation, agent)), states
 
 
 def model_split(model: str, compiled: jax.stages.Compiled, state, generations: int) -> dict:
-    """The time split of one model's compiled late-run generation, traced alone; the program
-    must have run once already."""
+    """The time split of one model's late-run generation, traced alone; the program must have
+    run once already."""
     with tempfile.TemporaryDirectory() as log_dir:
         trace = trace_of(lambda: [compiled(state) for _ in range(generations)], log_dir)
         ms, unattributed = split(trace, phases_of(compiled.as_text()), generations,
@@ -194,27 +229,34 @@ def model_split(model: str, compiled: jax.stages.Compiled, state, generations: i
 
 
 def task_split(task: str, generations: int, smoke: bool) -> list[dict]:
-    """The time split of each of the task's models (Base first): their programs compile side
-    by side (`compile_ahead`), then each is timed alone, one after the other."""
-    programs = {cell.config: model_program(task, cell, smoke)
-                for cell in cells("table1", (task,))}
-    states = {model: state for model, (_, state) in programs.items()}
-    futures = compile_ahead({model: (step, (states[model],))
-                             for model, (step, _) in programs.items()})
-    compiled = {model: future.result() for model, future in futures.items()}
-    for model in compiled:  # every program's first run before any is traced
-        jax.block_until_ready(compiled[model](states[model]))
-    base = next(iter(compiled))
+    """The time split of each of the task's models (Base first): the task's one program
+    compiles, runs once per model, then each model is traced alone, one after the other."""
+    started = time.perf_counter()
+
+    def progress(what: str) -> None:
+        print(f"{task}: {what} ({time.perf_counter() - started:.0f} s)", flush=True)
+
+    step, states = task_program(task, smoke)
+    progress("late-run state built")
+    compiled = step.lower(next(iter(states.values()))).compile()
+    progress("compiled")
+    for state in states.values():  # every model's first run before any is traced
+        jax.block_until_ready(compiled(state))
+    base = next(iter(states))
     with tempfile.TemporaryDirectory() as log_dir:  # a process's first trace runs slower
-        trace_of(lambda: compiled[base](states[base]), log_dir)
-    return [model_split(model, compiled[model], states[model], generations)
-            for model in compiled]
+        trace_of(lambda: compiled(states[base]), log_dir)
+    progress("run once per model, and traced once untimed")
+    splits = []
+    for model, state in states.items():
+        splits.append(model_split(model, compiled, state, generations))
+        progress(f"{model} traced")
+    return splits
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--tasks", nargs="*", default=["halfcheetah", "walker2d", "ant"])
-    parser.add_argument("--generations", type=int, default=2)
+    parser.add_argument("--generations", type=int, default=1)
     parser.add_argument("--out", default="benchmarks/results/time_split.json")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()

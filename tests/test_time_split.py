@@ -1,7 +1,8 @@
 """Table 1's time split (`benchmarks.time_split`): the generation program's operations carry
-the four phases of the paper as named scopes, and a profile's device time is attributed to
-them."""
+the four phases of the paper as named scopes, a profile's device time is attributed to them,
+and the generation timed is a late run's (full episodes, the TD3 actor lagging)."""
 
+import dataclasses
 import glob
 import os
 
@@ -9,8 +10,10 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks import physics_profile
-from benchmarks.time_split import counted_events, phases_of, split
+from benchmarks.time_split import (FullEpisodes, counted_events, lagging_generation, phases_of,
+                                   split)
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
+from pgps_jax.agent.couplings import couplings_of
 from pgps_jax.agent.pgps import PGPS, PHASES
 from pgps_jax.envs import make_env
 
@@ -23,6 +26,33 @@ def test_the_generation_program_carries_every_phase_of_table1():
     state = jax.jit(agent.init)(jax.random.PRNGKey(0), jax.random.PRNGKey(1))
     text = jax.jit(agent.generation_step).lower(state).compile().as_text()
     assert set(PHASES) <= set(phases_of(text).values())
+
+
+def test_full_episodes_leave_the_task_as_it_is_but_never_end_it():
+    hopper = make_env("hopper")
+    start = hopper.reset(jax.random.PRNGKey(0))
+    fallen = start.replace(pipeline_state=start.pipeline_state.replace(
+        qpos=start.pipeline_state.qpos.at[1].set(-1.0)))  # the torso far below its range
+    action = jnp.full((hopper.action_size,), 0.3)
+    raw = jax.jit(hopper.step)(fallen, action)
+    full = jax.jit(FullEpisodes(hopper).step)(fallen, action)
+    assert raw.done == 1.0 and full.done == 0.0
+    assert jnp.array_equal(raw.obs, full.obs) and raw.reward == full.reward
+
+
+def test_the_lagging_generation_trains_on_the_augmented_loss_only_where_ea_guides_pg():
+    config = PGPSConfig(pop_size=4, top_k=2, actor_hidden=(8,), critic_hidden=(8,),
+                        batch_size=8, buffer_size=500, warmup_steps=40, t_init=10, t_max=10,
+                        q_filter_start=0, sample_ratio=2, ss1_size=4, ss2_size=8)
+    agent = PGPS(config, make_env("point"), EvaluationConfig(every=100, episodes=1, steps=10))
+    state = jax.jit(agent.init)(jax.random.PRNGKey(0), jax.random.PRNGKey(1))
+    generation = jax.jit(lambda s: lagging_generation(agent, s))
+    for ea_guides_pg in (False, True):
+        model = dataclasses.replace(config, ea_guides_pg=ea_guides_pg)
+        _, metrics = generation(state.replace(couplings=couplings_of(config, model)))
+        assert bool(metrics["td3/guided_loss"]) == ea_guides_pg
+        returns = [metrics[f"pop/return_{i}"] for i in range(config.pop_size)]
+        assert returns[-1] < min(returns[:-1])  # the TD3 actor's slot, lowest
 
 
 def test_a_profile_s_time_goes_to_the_scopes_of_its_operations_once(tmp_path):
