@@ -34,9 +34,10 @@ SMOKE = "--smoke" in sys.argv
 TESTS = EvaluationConfig(steps=20) if SMOKE else EvaluationConfig()
 
 
-def late_state(config, env):
-    """The state of a run at 600k steps: full buffer of random rows, an evaluation begun."""
-    state = jax.jit(PGPS(config, env, TESTS).init)(jax.random.PRNGKey(0))
+def late_state(config, env, tests: EvaluationConfig = TESTS, late: int | None = None):
+    """The state of a run at `late` env steps (600k; 2k with --smoke): full buffer of random
+    rows, an evaluation (of `tests`) begun."""
+    state = jax.jit(PGPS(config, env, tests).init)(jax.random.PRNGKey(0))
     capacity = config.buffer_size
     k = jax.random.split(jax.random.PRNGKey(1), 5)
     data = replay.Transition(
@@ -47,7 +48,8 @@ def late_state(config, env):
         discount=jnp.ones((capacity,)))
     buffer = replay.BufferState(data=data, position=jnp.zeros((), jnp.int32),
                                 size=jnp.asarray(capacity, jnp.int32))
-    late = 600_000 if not SMOKE else 2_000
+    if late is None:
+        late = 600_000 if not SMOKE else 2_000
     return state.replace(buffer=buffer, total_steps=jnp.asarray(late, jnp.int32),
                          evaluation=state.evaluation.replace(
                              next_due=jnp.asarray(late, jnp.int32)))

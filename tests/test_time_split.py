@@ -10,20 +10,26 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks import physics_profile
-from benchmarks.time_split import (FullEpisodes, counted_events, lagging_generation, phases_of,
-                                   split)
+from benchmarks.time_split import (FullEpisodes, counted_events, lagging_generation,
+                                   lagging_returns, phases_of, split)
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
 from pgps_jax.agent.couplings import couplings_of
-from pgps_jax.agent.pgps import PGPS, PHASES
+from pgps_jax.agent.pgps import PGPS, PHASES, fell_behind
 from pgps_jax.envs import make_env
 
 
-def test_the_generation_program_carries_every_phase_of_table1():
-    config = PGPSConfig(pop_size=2, top_k=1, actor_hidden=(8,), critic_hidden=(8,),
-                        batch_size=8, buffer_size=500, warmup_steps=40, t_init=10, t_max=10,
-                        q_filter_start=0, sample_ratio=2, ss1_size=4, ss2_size=8)
+def point_pgps(pop_size: int) -> tuple[PGPS, object]:
+    """A tiny PGPS on the point mass, Q-filtering from the start, and its initial state."""
+    config = PGPSConfig(pop_size=pop_size, top_k=pop_size // 2, actor_hidden=(8,),
+                        critic_hidden=(8,), batch_size=8, buffer_size=500, warmup_steps=40,
+                        t_init=10, t_max=10, q_filter_start=0, sample_ratio=2, ss1_size=4,
+                        ss2_size=8)
     agent = PGPS(config, make_env("point"), EvaluationConfig(every=100, episodes=1, steps=10))
-    state = jax.jit(agent.init)(jax.random.PRNGKey(0), jax.random.PRNGKey(1))
+    return agent, jax.jit(agent.init)(jax.random.PRNGKey(0), jax.random.PRNGKey(1))
+
+
+def test_the_generation_program_carries_every_phase_of_table1():
+    agent, state = point_pgps(pop_size=2)
     text = jax.jit(agent.generation_step).lower(state).compile().as_text()
     assert set(PHASES) <= set(phases_of(text).values())
 
@@ -41,18 +47,32 @@ def test_full_episodes_leave_the_task_as_it_is_but_never_end_it():
 
 
 def test_the_lagging_generation_trains_on_the_augmented_loss_only_where_ea_guides_pg():
-    config = PGPSConfig(pop_size=4, top_k=2, actor_hidden=(8,), critic_hidden=(8,),
-                        batch_size=8, buffer_size=500, warmup_steps=40, t_init=10, t_max=10,
-                        q_filter_start=0, sample_ratio=2, ss1_size=4, ss2_size=8)
-    agent = PGPS(config, make_env("point"), EvaluationConfig(every=100, episodes=1, steps=10))
-    state = jax.jit(agent.init)(jax.random.PRNGKey(0), jax.random.PRNGKey(1))
+    agent, state = point_pgps(pop_size=4)
+    config = agent.config
     generation = jax.jit(lambda s: lagging_generation(agent, s))
     for ea_guides_pg in (False, True):
         model = dataclasses.replace(config, ea_guides_pg=ea_guides_pg)
-        _, metrics = generation(state.replace(couplings=couplings_of(config, model)))
+        switched = state.replace(couplings=couplings_of(config, model))
+        _, metrics = generation(switched)
         assert bool(metrics["td3/guided_loss"]) == ea_guides_pg
         returns = [metrics[f"pop/return_{i}"] for i in range(config.pop_size)]
         assert returns[-1] < min(returns[:-1])  # the TD3 actor's slot, lowest
+    text = generation.lower(switched).compile().as_text()  # the program timed
+    assert set(PHASES) <= set(phases_of(text).values())
+
+
+def test_lagging_returns_fall_behind_however_the_others_spread():
+    key = jax.random.PRNGKey(0)
+    for n in (3, 4, 6, 10):
+        for spread in (1e-3, 1.0, 1e4):
+            key, draw = jax.random.split(key)
+            returns = spread * jax.random.normal(draw, (n,))
+            for outlier in (0.0, 100 * spread):  # one far above the rest widens the std
+                hostile = returns.at[0].add(outlier)
+                lagging = lagging_returns(hostile, n - 1)
+                assert jnp.array_equal(lagging[:-1], hostile[:-1])
+                assert fell_behind(lagging[-1], lagging, "mean_minus_std")
+                assert fell_behind(lagging[-1], lagging, "mean")
 
 
 def test_a_profile_s_time_goes_to_the_scopes_of_its_operations_once(tmp_path):
