@@ -23,7 +23,8 @@ listed under `unattributed`.
     python -m benchmarks.time_split --tasks halfcheetah walker2d ant
     python -m benchmarks.time_split --tasks halfcheetah --smoke   # tiny sizes: a CPU check
 
-Writes `benchmarks/results/time_split.json`.
+Writes `benchmarks/results/time_split.json`, and Table 1's columns averaged over the tasks
+(`table1_time`) beside it in `time_split.md`.
 """
 
 import argparse
@@ -41,6 +42,7 @@ from typing import Any, Callable, Optional, Sequence
 from brax.envs.base import Wrapper
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from benchmarks.profile_generation import late_state
 from benchmarks.timing import provenance
@@ -271,6 +273,29 @@ def task_split(task: str, generations: int, smoke: bool) -> list[dict]:
     return splits
 
 
+TABLE1_COLUMNS = (("td3_update", "TD3 update"), ("actors_evaluation", "actors evaluation"),
+                  ("population_generation", "population generation"),
+                  ("cem_update", "CEM update"), ("other", "other"))
+"""Table 1's columns of normalised computational time, in the paper's order, and `other`."""
+
+
+def table1_time(tasks: list[dict]) -> str:
+    """Table 1's normalised computational time as a Markdown table: per model, each phase's
+    time over the Base model's total on its task, averaged over the tasks (as the paper
+    averages its three games), and their sum."""
+    names = [model["model"] for model in tasks[0]["models"]]
+    lines = ["| model | sum | " + " | ".join(title for _, title in TABLE1_COLUMNS) + " |",
+             "|" + "---|" * (2 + len(TABLE1_COLUMNS))]
+    for name in names:
+        shares = [np.mean([next(m for m in task["models"] if m["model"] == name)
+                           ["normalised"][phase] for task in tasks])
+                  for phase, _ in TABLE1_COLUMNS]
+        lines.append(f"| {name} | {sum(shares):.3f} | "
+                     + " | ".join(f"{share:.3f}" for share in shares) + " |")
+    tasks_line = "Averaged over " + ", ".join(task["task"] for task in tasks) + "."
+    return "\n".join(lines + ["", tasks_line, ""])
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--tasks", nargs="*", default=["halfcheetah", "walker2d", "ant"])
@@ -290,6 +315,8 @@ def main():
         os.makedirs(os.path.dirname(args.out), exist_ok=True)
         with open(args.out, "w") as f:  # after every task: a cut-off run keeps its part
             json.dump(result, f, indent=1)
+        with open(os.path.splitext(args.out)[0] + ".md", "w") as f:
+            f.write(table1_time(result["tasks"]))
 
 
 if __name__ == "__main__":

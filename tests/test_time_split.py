@@ -8,10 +8,12 @@ import os
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from benchmarks import physics_profile
-from benchmarks.time_split import (FullEpisodes, counted_events, lagging_generation,
-                                   lagging_returns, phases_of, split)
+from benchmarks.time_split import (TABLE1_COLUMNS, FullEpisodes, counted_events,
+                                   lagging_generation, lagging_returns, phases_of, split,
+                                   table1_time)
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
 from pgps_jax.agent.couplings import couplings_of
 from pgps_jax.agent.pgps import PGPS, PHASES, fell_behind
@@ -129,3 +131,19 @@ def test_the_physics_profile_names_each_stage_of_a_mujoco_step():
     assert unscoped < 0.4 * profile["kernels_per_env_step"]  # the stages hold most of it
     assert {name: getattr(module, name)
             for name, module in physics_profile.SCOPED_HERE.items()} == originals
+
+
+def test_table1_s_time_averages_each_model_s_normalised_phases_over_the_tasks():
+    phases = [phase for phase, _ in TABLE1_COLUMNS]
+    shares = np.random.default_rng(0).uniform(0, 1, (2, 3, len(phases)))  # task, model, phase
+    tasks = [{"task": task, "models": [{"model": model, "normalised": dict(zip(phases, row))}
+                                       for model, row in zip(("base", "q_filter", "pgps"), rows)]}
+             for task, rows in zip(("halfcheetah", "ant"), shares)]
+    lines = table1_time(tasks).splitlines()
+    expected = shares.mean(axis=0)  # the paper's average over its games
+    for model, row, line in zip(("base", "q_filter", "pgps"), expected, lines[2:5]):
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        assert cells[0] == model
+        np.testing.assert_allclose([float(c) for c in cells[1:]], [row.sum(), *row], atol=5e-4)
+    assert "halfcheetah, ant" in lines[-1]
+
