@@ -31,13 +31,20 @@ from pgps_jax.agent.pgps import PGPS, episode_limit
 from pgps_jax.envs import make_env
 
 SMOKE = "--smoke" in sys.argv
-TESTS = EvaluationConfig(steps=20) if SMOKE else EvaluationConfig()
 
 
-def late_state(config, env, tests: EvaluationConfig = TESTS, late: int | None = None):
-    """The state of a run at `late` env steps (600k; 2k with --smoke): full buffer of random
-    rows, an evaluation (of `tests`) begun."""
-    state = jax.jit(PGPS(config, env, tests).init)(jax.random.PRNGKey(0))
+def tests_of(smoke: bool) -> EvaluationConfig:
+    """The test evaluation: the paper's, or of 20-step episodes at `smoke` sizes."""
+    return EvaluationConfig(steps=20) if smoke else EvaluationConfig()
+
+
+TESTS = tests_of(SMOKE)
+
+
+def late_state(config, env, smoke: bool = SMOKE):
+    """The state of a run at 600k env steps (2k at `smoke` sizes): full buffer of random
+    rows, an evaluation (`tests_of`) begun."""
+    state = jax.jit(PGPS(config, env, tests_of(smoke)).init)(jax.random.PRNGKey(0))
     capacity = config.buffer_size
     k = jax.random.split(jax.random.PRNGKey(1), 5)
     data = replay.Transition(
@@ -48,8 +55,7 @@ def late_state(config, env, tests: EvaluationConfig = TESTS, late: int | None = 
         discount=jnp.ones((capacity,)))
     buffer = replay.BufferState(data=data, position=jnp.zeros((), jnp.int32),
                                 size=jnp.asarray(capacity, jnp.int32))
-    if late is None:
-        late = 600_000 if not SMOKE else 2_000
+    late = 600_000 if not smoke else 2_000
     return state.replace(buffer=buffer, total_steps=jnp.asarray(late, jnp.int32),
                          evaluation=state.evaluation.replace(
                              next_due=jnp.asarray(late, jnp.int32)))

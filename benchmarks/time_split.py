@@ -44,9 +44,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.profile_generation import late_state
+from benchmarks.profile_generation import late_state, tests_of
 from benchmarks.timing import provenance
-from pgps_jax.agent.config import EvaluationConfig, for_task
+from pgps_jax.agent.config import for_task
 from pgps_jax.agent.couplings import couplings_of
 from pgps_jax.agent.pgps import PGPS, PHASES
 from pgps_jax.envs import State, make_env
@@ -221,9 +221,8 @@ def task_program(task: str, smoke: bool) -> tuple[Callable, dict[str, Any]]:
     sizes = SMOKE if smoke else {}
     config = for_task(task, **sizes)
     env = FullEpisodes(make_env(task))
-    tests = EvaluationConfig(steps=20) if smoke else EvaluationConfig()
-    agent = PGPS(config, env, tests)
-    state = late_state(config, env, tests, late=2_000 if smoke else 600_000)
+    agent = PGPS(config, env, tests_of(smoke))
+    state = late_state(config, env, smoke)
     state = state.replace(evaluation=state.evaluation.replace(  # none under way
         next_due=jnp.asarray(2**30, jnp.int32)))
     states = {cell.config: state.replace(couplings=couplings_of(
