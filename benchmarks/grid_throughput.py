@@ -31,7 +31,7 @@ from typing import Iterator
 import jax
 import jax.numpy as jnp
 
-from benchmarks.timing import provenance, timed
+from benchmarks.timing import provenance, results_path, timed
 from pgps_jax.agent.config import EvaluationConfig, for_task
 from pgps_jax.agent.pgps import PGPS
 from pgps_jax.cli import run_dir as rundir
@@ -122,9 +122,11 @@ def main() -> None:
     parser.add_argument("--concurrent", type=int, default=5)
     parser.add_argument("--steps", type=int, default=1_000_000, help="grid: each cell's budget")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/grid"))
-    parser.add_argument("--results", type=pathlib.Path, default=RESULTS)
+    parser.add_argument("--results", help=f"default: {RESULTS}; with --smoke, the same name in a "
+                        "temporary directory")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()
+    args.results = results_path(args.results, str(RESULTS), args.smoke)
     environ = dict(os.environ)
     if args.measure == "grid":  # this process only times: the GPUs' memory is the cells'
         os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"

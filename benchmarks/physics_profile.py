@@ -30,8 +30,8 @@ import jax
 from mujoco.mjx._src import collision_driver, constraint, smooth
 
 from benchmarks.env_latency import env_rollout
-from benchmarks.time_split import counted_events, phases_of, trace_of
-from benchmarks.timing import provenance
+from benchmarks.device_trace import counted_events, phases_of, trace_of
+from benchmarks.timing import provenance, results_path
 from pgps_jax.cli.run_dir import write_atomic
 from pgps_jax.envs import TASKS, make_env
 from pgps_jax.envs.physics import default_platform
@@ -104,7 +104,8 @@ def main(argv=None):
     parser.add_argument("--batch", type=int, default=60)
     parser.add_argument("--steps", type=int, default=20, help="env steps per profiled call")
     parser.add_argument("--calls", type=int, default=3)
-    parser.add_argument("--out", default="benchmarks/results/physics_profile.json")
+    parser.add_argument("--out", help="default: benchmarks/results/physics_profile.json; with "
+                        "--smoke, the same name in a temporary directory")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args(argv)
     for option in ("batch", "steps", "calls"):
@@ -112,6 +113,7 @@ def main(argv=None):
             parser.error(f"--{option} must be a positive integer, not {getattr(args, option)}")
     if args.smoke:
         args.batch, args.steps, args.calls = 2, 2, 1
+    args.out = results_path(args.out, "benchmarks/results/physics_profile.json", args.smoke)
     pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     result = {**provenance(), "tasks": []}
     for task in args.tasks:

@@ -24,7 +24,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from benchmarks.timing import timed
+from benchmarks.timing import results_path, timed
 from pgps_jax.agent import buffer as replay
 from pgps_jax.agent.config import EvaluationConfig, for_task
 from pgps_jax.agent.pgps import PGPS, episode_limit
@@ -116,10 +116,12 @@ def summarise(trace_file: str, generations: int) -> dict:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--out", default="benchmarks/results/profile_generation.json")
+    parser.add_argument("--out", help="default: benchmarks/results/profile_generation.json; with "
+                        "--smoke, the same name in a temporary directory")
     parser.add_argument("--generations", type=int, default=2)
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()
+    args.out = results_path(args.out, "benchmarks/results/profile_generation.json", args.smoke)
     config = for_task("halfcheetah")
     if SMOKE:
         config = config.replace(t_init=10, t_max=20, t_interval=1000, buffer_size=5000,

@@ -29,7 +29,7 @@ import numpy as np
 import optax
 
 from benchmarks.env_latency import bare_rollout
-from benchmarks.timing import provenance, timed
+from benchmarks.timing import provenance, results_path, timed
 from pgps_jax.agent import buffer as replay
 from pgps_jax.agent import cem
 from pgps_jax.agent.config import EvaluationConfig, for_task
@@ -268,9 +268,11 @@ def main():
     parser.add_argument("--tasks", nargs="*", default=list(TASKS))
     parser.add_argument("--full-run", nargs="*", default=[], metavar="TASK")
     parser.add_argument("--seeds", nargs="*", type=int, default=[1, 5])
-    parser.add_argument("--out", default="benchmarks/results/throughput.json")
+    parser.add_argument("--out", help="default: benchmarks/results/throughput.json; with "
+                        "--smoke, the same name in a temporary directory")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()
+    args.out = results_path(args.out, "benchmarks/results/throughput.json", args.smoke)
     result = {**provenance(),
               "xla_flags": os.environ.get("XLA_FLAGS", ""),
               "components": [], "full_runs": []}

@@ -2,7 +2,9 @@
 
 import pathlib
 import subprocess
+import tempfile
 import time
+from typing import Optional
 
 import jax
 import numpy as np
@@ -19,6 +21,17 @@ def timed(fn, *args, repeats=5):
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - start)
     return first, float(np.median(times))
+
+
+def results_path(given: Optional[str], default: str, smoke: bool) -> pathlib.Path:
+    """Where a benchmark writes: `given` (its --out), else `default`, the committed result
+    under benchmarks/results/, or for a --smoke check the same file name in a temporary
+    directory, so that checking a script never overwrites a measurement."""
+    if given is not None:
+        return pathlib.Path(given)
+    if smoke:
+        return pathlib.Path(tempfile.gettempdir()) / "pgps_jax_smoke" / pathlib.Path(default).name
+    return pathlib.Path(default)
 
 
 def provenance() -> dict:

@@ -1,22 +1,22 @@
-"""Table 1's time split (`benchmarks.time_split`): the generation program's operations carry
-the four phases of the paper as named scopes, a profile's device time is attributed to them,
-and the generation timed is a late run's (full episodes, the TD3 actor lagging)."""
+"""Table 1's time split (`benchmarks.time_split`): the generation timed is a late run's (full
+episodes, the TD3 actor lagging), each part timed alone computes what the generation computed
+in it, and the columns add up to the generation as the paper's do."""
 
 import dataclasses
-import glob
-import os
+import pathlib
+import tempfile
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
-from benchmarks import physics_profile
-from benchmarks.time_split import (TABLE1_COLUMNS, FullEpisodes, counted_events,
-                                   lagging_generation, lagging_returns, phases_of, split,
-                                   table1_time)
+from benchmarks.time_split import (TABLE1_COLUMNS, FullEpisodes, lagging_generation,
+                                   lagging_returns, model_split, parts_of, table1_time)
+from benchmarks.timing import results_path
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
 from pgps_jax.agent.couplings import couplings_of
-from pgps_jax.agent.pgps import PGPS, PHASES, fell_behind
+from pgps_jax.agent.pgps import PGPS, fell_behind
 from pgps_jax.envs import make_env
 
 
@@ -30,10 +30,10 @@ def point_pgps(pop_size: int) -> tuple[PGPS, object]:
     return agent, jax.jit(agent.init)(jax.random.PRNGKey(0), jax.random.PRNGKey(1))
 
 
-def test_the_generation_program_carries_every_phase_of_table1():
-    agent, state = point_pgps(pop_size=2)
-    text = jax.jit(agent.generation_step).lower(state).compile().as_text()
-    assert set(PHASES) <= set(phases_of(text).values())
+def model_state(agent: PGPS, state, **couplings):
+    """`state` switched to the model of `agent`'s configuration with `couplings` changed."""
+    model = dataclasses.replace(agent.config, **couplings)
+    return state.replace(couplings=couplings_of(agent.config, model))
 
 
 def test_full_episodes_leave_the_task_as_it_is_but_never_end_it():
@@ -50,17 +50,13 @@ def test_full_episodes_leave_the_task_as_it_is_but_never_end_it():
 
 def test_the_lagging_generation_trains_on_the_augmented_loss_only_where_ea_guides_pg():
     agent, state = point_pgps(pop_size=4)
-    config = agent.config
     generation = jax.jit(lambda s: lagging_generation(agent, s))
     for ea_guides_pg in (False, True):
-        model = dataclasses.replace(config, ea_guides_pg=ea_guides_pg)
-        switched = state.replace(couplings=couplings_of(config, model))
-        _, metrics = generation(switched)
+        _, metrics, played = generation(model_state(agent, state, ea_guides_pg=ea_guides_pg))
         assert bool(metrics["td3/guided_loss"]) == ea_guides_pg
-        returns = [metrics[f"pop/return_{i}"] for i in range(config.pop_size)]
+        returns = [metrics[f"pop/return_{i}"] for i in range(agent.config.pop_size)]
         assert returns[-1] < min(returns[:-1])  # the TD3 actor's slot, lowest
-    text = generation.lower(switched).compile().as_text()  # the program timed
-    assert set(PHASES) <= set(phases_of(text).values())
+        np.testing.assert_array_equal(played.episodes.returns[:agent.config.pop_size], returns)
 
 
 def test_lagging_returns_fall_behind_however_the_others_spread():
@@ -77,60 +73,33 @@ def test_lagging_returns_fall_behind_however_the_others_spread():
                 assert fell_behind(lagging[-1], lagging, "mean")
 
 
-def test_a_profile_s_time_goes_to_the_scopes_of_its_operations_once(tmp_path):
-    def work(x):
-        with jax.named_scope("td3_update"):
-            y = jax.lax.fori_loop(0, 3, lambda i, y: jnp.tanh(y @ x), x)
-        with jax.named_scope("cem_update"):
-            z = jax.lax.cond(y[0, 0] > 0, lambda y: jnp.sin(y @ y), jnp.cos, y)
-            return z.sum(0)
-
-    x = jax.device_put(jnp.ones((128, 128)) / 128, jax.devices("cpu")[0])  # the CPU's trace
-    compiled = jax.jit(work).lower(x).compile()
-    jax.block_until_ready(compiled(x))
-    with jax.profiler.trace(str(tmp_path), create_perfetto_trace=True):
-        for _ in range(3):
-            jax.block_until_ready(compiled(x))
-    trace, = glob.glob(os.path.join(tmp_path, "**", "perfetto_trace.json.gz"), recursive=True)
-    phases = phases_of(compiled.as_text())
-    assert None in phases.values()  # the loop and the conditional: their operations count
-    ms, _ = split(trace, phases, 3, "cpu")
-    assert ms["td3_update"] > 0 and ms["cem_update"] > 0
-    assert ms["population_generation"] == ms["actors_evaluation"] == 0
-    spans = sorted((e["tid"], e["ts"], e["ts"] + e["dur"])
-                   for e, _, _ in counted_events(trace, phases, "cpu"))
-    for (tid, _, end), (next_tid, start, _) in zip(spans, spans[1:]):
-        assert tid != next_tid or start >= end  # none counted inside another
+@pytest.mark.parametrize("couplings", [dict(), dict(pg_guides_ea=False, ea_guides_pg=False,
+                                                     q_filter=False)])
+def test_each_part_alone_computes_what_the_generation_computed_in_it(couplings):
+    """The full model (Q-filtered, the TD3 actor injected and guided) and the Base model."""
+    agent, state = point_pgps(pop_size=4)
+    state = model_state(agent, state, **couplings)
+    after, metrics, played = jax.jit(lambda s: lagging_generation(agent, s))(state)
+    guided = metrics["td3/guided_loss"]
+    parts = {name: jax.jit(part)(state, played, after, guided)
+             for name, part in parts_of(agent).items()}
+    np.testing.assert_array_equal(parts["population_generation"], played.population)
+    jax.tree.map(np.testing.assert_array_equal, parts["cem_update"], after.cem)
+    buffer, td3, beta, _ = parts["td3_update"]  # compiled alone: equal to float tolerance
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6),
+                 (buffer, td3, beta), (after.buffer, after.td3, after.beta))
 
 
-def test_nested_scopes_count_for_the_innermost():
-    def work(x):
-        with jax.named_scope("outer"):
-            y = jnp.exp(x)
-            with jax.named_scope("inner"):
-                return jnp.sin(y) * 2.0
-
-    text = jax.jit(work).lower(jnp.ones(3)).compile().as_text()
-    assert {"outer", "inner"} <= set(phases_of(text, ("outer", "inner")).values())
-    assert "inner" not in phases_of(text, ("outer",)).values()
-
-
-def test_the_physics_profile_names_each_stage_of_a_mujoco_step():
-    """`benchmarks.physics_profile` on hopper (contacts, Newton solver): every stage it scopes
-    runs kernels, and together they run most of the env step's (the rest: the env's own
-    observation, reward and guard, and the loops' bookkeeping); MJX's own functions are left
-    as they were."""
-    originals = {name: getattr(module, name)
-                 for name, module in physics_profile.SCOPED_HERE.items()}
-    profile = physics_profile.profile_task("hopper", batch=2, steps=2, calls=1)
-    stages = profile["stages"]
-    for stage in ("kinematics", "crb", "collision", "make_constraint", "fwd_velocity", "solve",
-                  "euler"):
-        assert stages[stage]["kernels"] > 0 and stages[stage]["device_ms"] > 0, stage
-    unscoped = stages.get("other", {"kernels": 0})["kernels"]
-    assert unscoped < 0.4 * profile["kernels_per_env_step"]  # the stages hold most of it
-    assert {name: getattr(module, name)
-            for name, module in physics_profile.SCOPED_HERE.items()} == originals
+def test_the_columns_add_up_to_the_generation():
+    agent, state = point_pgps(pop_size=4)
+    generation = jax.jit(lambda s: lagging_generation(agent, s))
+    parts = {name: jax.jit(part) for name, part in parts_of(agent).items()}
+    split = model_split(generation, parts, state, repeats=2)
+    ms = split["ms_per_generation"]
+    assert set(ms) == {phase for phase, _ in TABLE1_COLUMNS}
+    assert sum(ms.values()) == pytest.approx(split["total_ms"])
+    assert all(ms[name] > 0 for name in parts) and split["total_ms"] > 0
+    assert split["guided"] is True
 
 
 def test_table1_s_time_averages_each_model_s_normalised_phases_over_the_tasks():
@@ -147,3 +116,11 @@ def test_table1_s_time_averages_each_model_s_normalised_phases_over_the_tasks():
         np.testing.assert_allclose([float(c) for c in cells[1:]], [row.sum(), *row], atol=5e-4)
     assert "halfcheetah, ant" in lines[-1]
 
+
+def test_a_smoke_check_never_writes_over_a_committed_result():
+    default = "benchmarks/results/time_split.json"
+    assert results_path(None, default, smoke=False) == pathlib.Path(default)
+    smoke = results_path(None, default, smoke=True)
+    assert smoke.name == "time_split.json"
+    assert smoke.is_relative_to(tempfile.gettempdir())
+    assert results_path("runs/split.json", default, smoke=True) == pathlib.Path("runs/split.json")

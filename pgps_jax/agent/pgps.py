@@ -36,6 +36,7 @@ from pgps_jax.agent.config import PGPSConfig
 from pgps_jax.agent.couplings import Couplings
 from pgps_jax.agent.metrics import Metric, generation_metrics, population_return_key
 from pgps_jax.agent.networks import first_q, flatten
+from pgps_jax.agent.td3 import TD3State
 
 PHASES = ("population_generation", "actors_evaluation", "cem_update", "td3_update")
 """The parts of a generation whose computational time Table 1 of the paper splits, as JAX
@@ -135,19 +136,15 @@ class PGPS(Agent):
         td3_turn = ((state.generation + 1) % config.td3_to_cem_period) == 0
 
         with jax.named_scope("population_generation"):
-            population = self.population(state, sample_key, candidate_key, states_key)
-            td3_flat = flatten(state.td3.actor)
-            pg_guides_ea = self.switch(state, "pg_guides_ea")
-            if pg_guides_ea is not False:
-                population = jnp.where(td3_turn & pg_guides_ea,
-                                       population.at[n - 1].set(td3_flat), population)
+            population = self.generated_population(state, sample_key, candidate_key,
+                                                   states_key, td3_turn)
         if state.kept_population is not None:
             state = state.replace(kept_population=population)  # with the injected TD3 actor
         limit = episode_limit(state.total_steps, config,
                               self.switch(state, "increasing_steps"))
         actors, limits = population, jnp.full((n,), limit)
         if config.td3_probe:
-            actors = jnp.concatenate([population, td3_flat[None]])
+            actors = jnp.concatenate([population, flatten(state.td3.actor)[None]])
             limits = jnp.append(limits, jnp.where(td3_turn, limit, 0))
         with jax.named_scope("actors_evaluation"):
             state, episodes, transitions, valid, report = self.rollout(
@@ -166,15 +163,11 @@ class PGPS(Agent):
         config = self.config
         n = config.pop_size
         episodes, td3_turn = played.episodes, played.td3_turn
-        with jax.named_scope("td3_update"):
-            buffer = replay.add(state.buffer, played.transitions, played.valid)
         interaction_steps = episodes.lengths.sum()
 
         returns = episodes.returns[:n]
         with jax.named_scope("cem_update"):
-            new_cem = cem.tell(state.cem, played.population, returns, top_k=config.top_k,
-                               sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
-                               divide_by_k=config.cem_divide_by_k)
+            new_cem = self.cem_update(state.cem, played.population, returns)
         pg_guides_ea = self.switch(state, "pg_guides_ea")
         ea_guides_pg = self.switch(state, "ea_guides_pg")
         td3_in_episodes = pg_guides_ea | config.td3_probe
@@ -184,18 +177,9 @@ class PGPS(Agent):
         else:
             guided = (td3_turn & fell_behind(td3_return, returns, config.fell_behind_rule)
                       & ea_guides_pg)
-
-        num_rollout = episodes.lengths.shape[0]
-        num_update = interaction_steps // config.update_blocks
-        max_update = num_rollout * config.t_max // config.update_blocks
-        elite = self._unflatten(new_cem.elite)
-        td3_state = state.td3
-        if config.target_actor_from_elite:
-            td3_state = td3_state.replace(actor_target=elite)
         with jax.named_scope("td3_update"):
-            new_td3, beta, losses = self.td3.train(td3_state, buffer, played.train_key,
-                                                   num_update, max_update, elite, guided,
-                                                   state.beta)
+            buffer, new_td3, beta, losses = self.td3_update(
+                state, played, self._unflatten(new_cem.elite), guided)
         generation = state.generation + 1
         new_state = state.replace(cem=new_cem, td3=new_td3, buffer=buffer, beta=beta,
                                   generation=generation,
@@ -217,6 +201,46 @@ class PGPS(Agent):
             **losses,
         }
         return new_state, metrics
+
+    # --- the phases of a generation (`PHASES`) -------------------------------------------
+    def generated_population(self, state: TrainState, sample_key: jax.Array,
+                             candidate_key: jax.Array, states_key: jax.Array,
+                             td3_turn: jax.Array) -> jax.Array:
+        """Algorithm 1 lines 6-11: the N actors to evaluate (`population`), the TD3 actor in
+        slot N−1 at its turn, every F generations, where PG→EA is on."""
+        population = self.population(state, sample_key, candidate_key, states_key)
+        pg_guides_ea = self.switch(state, "pg_guides_ea")
+        if pg_guides_ea is False:
+            return population
+        injected = population.at[self.config.pop_size - 1].set(flatten(state.td3.actor))
+        return jnp.where(td3_turn & pg_guides_ea, injected, population)
+
+    def cem_update(self, search: cem.CEMState, population: jax.Array, returns: jax.Array
+                   ) -> cem.CEMState:
+        """Algorithm 3: μ and Σ from the top-K of the population by return, and the elite."""
+        config = self.config
+        return cem.tell(search, population, returns, top_k=config.top_k,
+                        sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
+                        divide_by_k=config.cem_divide_by_k)
+
+    def td3_update(self, state: TrainState, played: Played, elite, guided: jax.Array
+                   ) -> tuple[replay.BufferState, TD3State, jax.Array, dict]:
+        """Algorithm 1 lines 19 and 27-37: the buffer takes the episodes' transitions, then
+        TD3 trains as many updates as the generation's env steps, on L^A toward `elite` (the
+        actor's parameters) where `guided` (eq. 2-3). Returns the buffer, the TD3 state, β
+        and the losses."""
+        config = self.config
+        buffer = replay.add(state.buffer, played.transitions, played.valid)
+        lengths = played.episodes.lengths
+        num_update = lengths.sum() // config.update_blocks
+        max_update = lengths.shape[0] * config.t_max // config.update_blocks
+        td3_state = state.td3
+        if config.target_actor_from_elite:
+            td3_state = td3_state.replace(actor_target=elite)
+        td3_state, beta, losses = self.td3.train(td3_state, buffer, played.train_key,
+                                                 num_update, max_update, elite, guided,
+                                                 state.beta)
+        return buffer, td3_state, beta, losses
 
     def generation_metrics(self) -> tuple[Metric, ...]:
         return generation_metrics(self.config.pop_size)
