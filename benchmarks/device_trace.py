@@ -1,10 +1,10 @@
 """Device time per named scope: a program run under JAX's profiler, and each device
 operation of its trace attributed to the JAX named scope that its HLO instruction carries.
 
-`phases_of` maps a compiled program's instructions to scopes (by default the phases of a PGPS
-generation, `pgps_jax.agent.pgps.PHASES`), `trace_of` profiles a run, and `counted_events`
-reads the trace's device operations with their scopes (`benchmarks.physics_profile` uses
-them for the stages of MJX's physics step).
+`phases_of` maps a compiled program's instructions to scopes (the stages of MJX's physics in
+`benchmarks.physics_profile`, or the phases of a PGPS generation, `pgps_jax.agent.pgps.PHASES`),
+`trace_of` profiles a run, and `counted_events` reads the trace's device operations with their
+scopes.
 """
 
 import collections
@@ -16,8 +16,6 @@ import re
 from typing import Any, Callable, Optional, Sequence
 
 import jax
-
-from pgps_jax.agent.pgps import PHASES
 
 _COMPUTATION = re.compile(r"^\s*(?:ENTRY )?%?([\w.\-]+) .*\{\s*$")
 _INSTRUCTION = re.compile(r"^\s*(?:ROOT )?%?([\w.\-]+) = ")
@@ -43,7 +41,7 @@ def _innermost(op_name: str, patterns: dict[str, re.Pattern]) -> Optional[str]:
     return max(found)[1] if found else None
 
 
-def phases_of(hlo_text: str, scopes: Sequence[str] = PHASES) -> dict[str, Optional[str]]:
+def phases_of(hlo_text: str, scopes: Sequence[str]) -> dict[str, Optional[str]]:
     """The phase of every HLO instruction of a compiled program (by its name's `_key`); None
     for a loop, conditional or call, whose time is that of the instructions it runs.
 

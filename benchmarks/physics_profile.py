@@ -21,7 +21,6 @@ import collections
 import contextlib
 import dataclasses
 import json
-import pathlib
 import tempfile
 import time
 from typing import Iterator
@@ -113,14 +112,14 @@ def main(argv=None):
             parser.error(f"--{option} must be a positive integer, not {getattr(args, option)}")
     if args.smoke:
         args.batch, args.steps, args.calls = 2, 2, 1
-    args.out = results_path(args.out, "benchmarks/results/physics_profile.json", args.smoke)
-    pathlib.Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    out = results_path(args.out, "benchmarks/results/physics_profile.json", args.smoke)
+    out.parent.mkdir(parents=True, exist_ok=True)
     result = {**provenance(), "tasks": []}
     for task in args.tasks:
         result["tasks"].append(profile_task(task, args.batch, args.steps, args.calls))
         print(json.dumps(result["tasks"][-1]), flush=True)
         # after every task: a cut-off run keeps its part
-        write_atomic(pathlib.Path(args.out), json.dumps(result, indent=1).encode())
+        write_atomic(out, json.dumps(result, indent=1).encode())
 
 
 if __name__ == "__main__":

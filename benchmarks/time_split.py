@@ -33,7 +33,6 @@ Writes `benchmarks/results/time_split.json`, and Table 1's columns averaged over
 import argparse
 import functools
 import json
-import os
 import time
 from typing import Any, Callable
 
@@ -43,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.profile_generation import late_state, tests_of
-from benchmarks.timing import provenance, results_path
+from benchmarks.timing import median_seconds, provenance, results_path, timed
 from pgps_jax.agent.base import Played
 from pgps_jax.agent.config import for_task
 from pgps_jax.agent.couplings import couplings_of
@@ -82,7 +81,7 @@ def lagging_generation(agent: PGPS, state) -> tuple[Any, dict, Played]:
     population (PG→EA; slot N − 1, no probe slot), fell behind (`lagging_returns`): a model
     with EA→PG trains on L^A (eq. 2-3), which over a run only the generations it lags in do,
     so its cost here is an upper bound. Returns the next state, the metrics and the
-    generation's `Played` (the inputs of its parts, `PARTS`)."""
+    generation's `Played` (the inputs of its parts, `parts_of`)."""
     played_state, played = agent.play(state)
     returns = played.episodes.returns
     lagging = lagging_returns(returns, agent.config.pop_size - 1)
@@ -91,25 +90,31 @@ def lagging_generation(agent: PGPS, state) -> tuple[Any, dict, Played]:
     return *agent.learn(played_state, played), played
 
 
-def parts_of(agent: PGPS) -> dict[str, Callable]:
-    """The generation's parts other than the actors evaluation, each a function of the state
-    the generation started from, its `Played`, the state it ended in and whether TD3 trained
-    on L^A, that calls the agent's own method for the part and computes what the generation
-    computed in it."""
+def parts_of(agent: PGPS) -> dict[str, tuple[Callable, Callable]]:
+    """The generation's parts other than the actors evaluation: per part, a function that
+    calls the agent's own method for it, and the function's arguments from what the
+    generation gave the part (the state it started from, its `Played`, the state after it and
+    whether TD3 trained on L^A), with which it computes what the generation computed in it.
+    A part takes only what it reads, so that its call costs no more than its work."""
     n = agent.config.pop_size
 
-    def population_generation(state, played: Played, after, guided):
+    def population_generation(state, td3_turn):
         keys = jax.random.split(state.key, 6)[:3]  # `play`'s sample, candidate, states keys
-        return agent.generated_population(state, *keys, played.td3_turn)
+        return agent.generated_population(state, *keys, td3_turn)
 
-    def cem_update(state, played: Played, after, guided):
-        return agent.cem_update(state.cem, played.population, played.episodes.returns[:n])
+    def td3_update(state, played, elite, guided):
+        return agent.td3_update(state, played, agent.actor(elite), guided)
 
-    def td3_update(state, played: Played, after, guided):
-        return agent.td3_update(state, played, agent.actor(after.cem.elite), guided)
-
-    return {"population_generation": population_generation, "cem_update": cem_update,
-            "td3_update": td3_update}
+    return {
+        "population_generation": (
+            population_generation, lambda state, played, after, guided: (
+                state, played.td3_turn)),
+        "cem_update": (
+            agent.cem_update, lambda state, played, after, guided: (
+                state.cem, played.population, played.episodes.returns[:n])),
+        "td3_update": (
+            td3_update, lambda state, played, after, guided: (
+                state, played, after.cem.elite, guided))}
 
 
 def task_program(task: str, smoke: bool) -> tuple[PGPS, dict[str, Any]]:
@@ -129,29 +134,21 @@ def task_program(task: str, smoke: bool) -> tuple[PGPS, dict[str, Any]]:
     return agent, states
 
 
-def wall_ms(program: Callable, args: tuple, repeats: int) -> float:
-    """Median wall-clock milliseconds of `program(*args)` to the end of its outputs'
-    computation, over `repeats` runs after an untimed one."""
-    jax.block_until_ready(program(*args))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(program(*args))
-        times.append(time.perf_counter() - start)
-    return 1e3 * float(np.median(times))
-
-
-def model_split(generation: Callable, parts: dict[str, Callable], state, repeats: int
-                ) -> dict:
-    """One model's generation and parts in milliseconds (`generation`: the jitted
-    `lagging_generation`; `parts`: the jitted `parts_of`), the actors evaluation being the
-    generation's rest, and whether its TD3 actor trained on L^A."""
+def model_split(generation: Callable, parts: dict[str, tuple[Callable, Callable]], state,
+                repeats: int) -> dict:
+    """One model's generation (`generation`: the jitted `lagging_generation`) and its parts
+    (`parts_of`, their functions jitted) in milliseconds, medians of `repeats` runs after an
+    untimed one, the actors evaluation being the generation's rest (a warning where nothing
+    is left for it); and whether its TD3 actor trained on L^A."""
     after, metrics, played = generation(state)
     guided = metrics["td3/guided_loss"]
-    total = wall_ms(generation, (state,), repeats)
-    ms = {name: wall_ms(part, (state, played, after, guided), repeats)
-          for name, part in parts.items()}
+    total = 1e3 * median_seconds(generation, state, repeats=repeats)
+    ms = {name: 1e3 * timed(part, *inputs(state, played, after, guided), repeats=repeats)[1]
+          for name, (part, inputs) in parts.items()}
     ms["actors_evaluation"] = total - sum(ms.values())
+    if ms["actors_evaluation"] <= 0:  # kept as measured: the table shows it
+        print(f"warning: the parts timed alone ({ms}) took as long as the generation "
+              f"({total:.3f} ms), leaving no time for its actors evaluation", flush=True)
     return {"ms_per_generation": ms, "total_ms": total, "guided": bool(guided)}
 
 
@@ -163,7 +160,7 @@ def task_split(task: str, repeats: int, smoke: bool) -> list[dict]:
     agent, states = task_program(task, smoke)
     print(f"{task}: late-run state built ({time.perf_counter() - started:.0f} s)", flush=True)
     generation = jax.jit(functools.partial(lagging_generation, agent))
-    parts = {name: jax.jit(part) for name, part in parts_of(agent).items()}
+    parts = {name: (jax.jit(part), inputs) for name, (part, inputs) in parts_of(agent).items()}
     splits = []
     for model, state in states.items():
         split = {"model": model, **model_split(generation, parts, state, repeats)}

@@ -14,13 +14,18 @@ def timed(fn, *args, repeats=5):
     """(seconds of the first call = compile + run, median seconds of later calls)."""
     start = time.perf_counter()
     jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - start
+    return time.perf_counter() - start, median_seconds(fn, *args, repeats=repeats)
+
+
+def median_seconds(fn, *args, repeats=5) -> float:
+    """Median seconds of `repeats` calls of `fn(*args)`, each to the end of its outputs'
+    computation (`fn` already compiled and run once)."""
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - start)
-    return first, float(np.median(times))
+    return float(np.median(times))
 
 
 def results_path(given: Optional[str], default: str, smoke: bool) -> pathlib.Path:

@@ -23,7 +23,7 @@ def test_the_generation_program_carries_every_phase_of_table1():
     agent = PGPS(config, make_env("point"), EvaluationConfig(every=100, episodes=1, steps=10))
     state = jax.jit(agent.init)(jax.random.PRNGKey(0), jax.random.PRNGKey(1))
     text = jax.jit(agent.generation_step).lower(state).compile().as_text()
-    assert set(PHASES) <= set(phases_of(text).values())
+    assert set(PHASES) <= set(phases_of(text, PHASES).values())
 
 
 def test_a_profile_s_time_goes_to_the_scopes_of_its_operations_once(tmp_path):
@@ -41,7 +41,7 @@ def test_a_profile_s_time_goes_to_the_scopes_of_its_operations_once(tmp_path):
         for _ in range(3):
             jax.block_until_ready(compiled(x))
     trace, = glob.glob(os.path.join(tmp_path, "**", "perfetto_trace.json.gz"), recursive=True)
-    phases = phases_of(compiled.as_text())
+    phases = phases_of(compiled.as_text(), PHASES)
     assert None in phases.values()  # the loop and the conditional: their operations count
     events = counted_events(trace, phases, "cpu")
     device_us = collections.Counter()

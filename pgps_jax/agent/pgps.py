@@ -202,11 +202,11 @@ class PGPS(Agent):
         }
         return new_state, metrics
 
-    # --- the phases of a generation (`PHASES`) -------------------------------------------
+    # --- three phases of a generation (`PHASES`; actors evaluation is `rollout`) ---------
     def generated_population(self, state: TrainState, sample_key: jax.Array,
                              candidate_key: jax.Array, states_key: jax.Array,
                              td3_turn: jax.Array) -> jax.Array:
-        """Algorithm 1 lines 6-11: the N actors to evaluate (`population`), the TD3 actor in
+        """Algorithm 1 lines 6-13: the N actors to evaluate (`population`), the TD3 actor in
         slot N−1 at its turn, every F generations, where PG→EA is on."""
         population = self.population(state, sample_key, candidate_key, states_key)
         pg_guides_ea = self.switch(state, "pg_guides_ea")
@@ -217,7 +217,7 @@ class PGPS(Agent):
 
     def cem_update(self, search: cem.CEMState, population: jax.Array, returns: jax.Array
                    ) -> cem.CEMState:
-        """Algorithm 3: μ and Σ from the top-K of the population by return, and the elite."""
+        """Algorithm 1 line 23: the elite, μ and Σ from the top-K actors by return."""
         config = self.config
         return cem.tell(search, population, returns, top_k=config.top_k,
                         sigma_limit=config.sigma_limit, sigma_decay=config.sigma_decay,
@@ -225,7 +225,7 @@ class PGPS(Agent):
 
     def td3_update(self, state: TrainState, played: Played, elite, guided: jax.Array
                    ) -> tuple[replay.BufferState, TD3State, jax.Array, dict]:
-        """Algorithm 1 lines 19 and 27-37: the buffer takes the episodes' transitions, then
+        """Algorithm 1 lines 18-19 and 24-37: the buffer takes the episodes' transitions, then
         TD3 trains as many updates as the generation's env steps, on L^A toward `elite` (the
         actor's parameters) where `guided` (eq. 2-3). Returns the buffer, the TD3 state, β
         and the losses."""
