@@ -43,7 +43,7 @@ TESTS = tests_of(SMOKE)
 
 def late_state(config, env, smoke: bool = SMOKE):
     """The state of a run at 600k env steps (2k at `smoke` sizes): full buffer of random
-    rows, an evaluation (`tests_of`) begun. Initialised without the random warm-up, whose
+    rows, an evaluation (`tests_of`) due. Initialised without the random warm-up, whose
     buffer and step count it replaces (and whose rollout would compile the physics)."""
     cold = PGPS(config.replace(warmup_steps=0), env, tests_of(smoke))
     state = jax.jit(cold.init)(jax.random.PRNGKey(0))

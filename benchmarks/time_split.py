@@ -50,6 +50,8 @@ from pgps_jax.agent.pgps import PGPS
 from pgps_jax.envs import State, make_env
 from pgps_jax.experiments.paper.grid import cells
 
+TABLE1_TASKS = tuple(dict.fromkeys(cell.task for cell in cells("table1")))
+"""The tasks of Table 1 (the paper's three)."""
 SMOKE = dict(t_init=10, t_max=20, t_interval=1000, buffer_size=5000, warmup_steps=200,
              q_filter_start=400, actor_hidden=(16, 16), critic_hidden=(16, 16), sample_ratio=2)
 
@@ -92,10 +94,11 @@ def lagging_generation(agent: PGPS, state) -> tuple[Any, dict, Played]:
 
 def parts_of(agent: PGPS) -> dict[str, tuple[Callable, Callable]]:
     """The generation's parts other than the actors evaluation: per part, a function that
-    calls the agent's own method for it, and the function's arguments from what the
-    generation gave the part (the state it started from, its `Played`, the state after it and
-    whether TD3 trained on L^A), with which it computes what the generation computed in it.
-    A part takes only what it reads, so that its call costs no more than its work."""
+    calls the agent's own method for it, and a function that builds its arguments from what
+    the generation gave the part (the state it started from, its `Played`, the state after it
+    and whether TD3 trained on L^A), with which it computes what the generation computed in
+    it. The CEM update takes its three arrays alone; the others take the state (and
+    `Played`) whole, whose unread leaves jit leaves out of the program."""
     n = agent.config.pop_size
 
     def population_generation(state, td3_turn):
@@ -120,14 +123,16 @@ def parts_of(agent: PGPS) -> dict[str, tuple[Callable, Callable]]:
 def task_program(task: str, smoke: bool) -> tuple[PGPS, dict[str, Any]]:
     """The agent of the task's late-run generation (the paper's configuration, `FullEpisodes`)
     and, per model of the `table1` grid (Base first), the late-run state that switches the
-    model's couplings (`couplings_of`)."""
+    model's couplings (`couplings_of`), at a generation where the TD3 actor takes its turn
+    (every F generations: Algorithm 1 line 11)."""
     sizes = SMOKE if smoke else {}
     config = for_task(task, **sizes)
     env = FullEpisodes(make_env(task))
     agent = PGPS(config, env, tests_of(smoke))
     state = late_state(config, env, smoke)
-    state = state.replace(evaluation=state.evaluation.replace(  # none under way
-        next_due=jnp.asarray(2**30, jnp.int32)))
+    state = state.replace(
+        evaluation=state.evaluation.replace(next_due=jnp.asarray(2**30, jnp.int32)),  # none
+        generation=jnp.asarray(config.td3_to_cem_period - 1, jnp.int32))  # the TD3 actor's turn
     states = {cell.config: state.replace(couplings=couplings_of(
         config, for_task(task, **dict(cell.overrides), **sizes)))
         for cell in cells("table1", (task,))}
@@ -198,7 +203,8 @@ def table1_time(tasks: list[dict]) -> str:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--tasks", nargs="*", default=["halfcheetah", "walker2d", "ant"])
+    parser.add_argument("--tasks", nargs="*", default=["halfcheetah", "walker2d", "ant"],
+                        choices=TABLE1_TASKS)
     parser.add_argument("--repeats", type=int, default=5, help="timed runs of each program")
     parser.add_argument("--out", help="default: benchmarks/results/time_split.json; with "
                         "--smoke, the same name in a temporary directory")

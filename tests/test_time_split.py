@@ -1,6 +1,6 @@
 """Table 1's time split (`benchmarks.time_split`): the generation timed is a late run's (full
 episodes, the TD3 actor lagging), each part timed alone computes what the generation computed
-in it, and the columns add up to the generation as the paper's do."""
+in it, and a model's split has Table 1's columns."""
 
 import dataclasses
 import pathlib

@@ -225,7 +225,7 @@ class PGPS(Agent):
 
     def td3_update(self, state: TrainState, played: Played, elite, guided: jax.Array
                    ) -> tuple[replay.BufferState, TD3State, jax.Array, dict]:
-        """Algorithm 1 lines 18-19 and 24-37: the buffer takes the episodes' transitions, then
+        """Algorithm 1 lines 19 and 24-37: the buffer takes the episodes' transitions, then
         TD3 trains as many updates as the generation's env steps, on L^A toward `elite` (the
         actor's parameters) where `guided` (eq. 2-3). Returns the buffer, the TD3 state, β
         and the losses."""
