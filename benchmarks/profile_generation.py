@@ -31,6 +31,11 @@ from pgps_jax.agent.pgps import PGPS, episode_limit
 from pgps_jax.envs import make_env
 
 SMOKE = "--smoke" in sys.argv
+SMOKE_SIZES = dict(t_init=10, t_max=20, t_interval=1000, buffer_size=5000, warmup_steps=200,
+                   q_filter_start=400, actor_hidden=(16, 16), critic_hidden=(16, 16),
+                   sample_ratio=2)
+"""The configuration's sizes at --smoke (a CPU check of a benchmark script): T = T_max and
+Q-filtering on from 400 steps, so that `late_state`'s 2k steps are a late run's."""
 
 
 def tests_of(smoke: bool) -> EvaluationConfig:
@@ -124,11 +129,7 @@ def main():
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()
     args.out = results_path(args.out, "benchmarks/results/profile_generation.json", args.smoke)
-    config = for_task("halfcheetah")
-    if SMOKE:
-        config = config.replace(t_init=10, t_max=20, t_interval=1000, buffer_size=5000,
-                                warmup_steps=200, q_filter_start=400, actor_hidden=(16, 16),
-                                critic_hidden=(16, 16), sample_ratio=2)
+    config = for_task("halfcheetah", **(SMOKE_SIZES if SMOKE else {}))
     env = make_env("halfcheetah")
     state = late_state(config, env)
     agent = PGPS(config, env, TESTS)

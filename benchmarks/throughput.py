@@ -29,6 +29,7 @@ import numpy as np
 import optax
 
 from benchmarks.env_latency import bare_rollout
+from benchmarks.profile_generation import SMOKE_SIZES
 from benchmarks.timing import provenance, results_path, timed
 from pgps_jax.agent import buffer as replay
 from pgps_jax.agent import cem
@@ -121,11 +122,7 @@ def plain_updates(obs_size, act_size, batch=256, capacity=1_000_000 if not SMOKE
 # ------------------------------------------------------------------ per-generation components
 def bench_config(task: str):
     """The paper's configuration, or a tiny one with --smoke (a CPU check of this script)."""
-    if not SMOKE:
-        return for_task(task)
-    return for_task(task, t_init=10, t_max=20, t_interval=1000, buffer_size=5000,
-                    warmup_steps=200, q_filter_start=400, actor_hidden=(16, 16),
-                    critic_hidden=(16, 16), sample_ratio=2)
+    return for_task(task, **(SMOKE_SIZES if SMOKE else {}))
 
 
 def components(task: str) -> dict:

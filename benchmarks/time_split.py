@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.profile_generation import late_state, tests_of
+from benchmarks.profile_generation import SMOKE_SIZES, late_state, tests_of
 from benchmarks.timing import median_seconds, provenance, results_path, timed
 from pgps_jax.agent.base import Played
 from pgps_jax.agent.config import for_task
@@ -52,8 +52,6 @@ from pgps_jax.experiments.paper.grid import cells
 
 TABLE1_TASKS = tuple(dict.fromkeys(cell.task for cell in cells("table1")))
 """The tasks of Table 1 (the paper's three)."""
-SMOKE = dict(t_init=10, t_max=20, t_interval=1000, buffer_size=5000, warmup_steps=200,
-             q_filter_start=400, actor_hidden=(16, 16), critic_hidden=(16, 16), sample_ratio=2)
 
 
 class FullEpisodes(Wrapper):
@@ -125,7 +123,7 @@ def task_program(task: str, smoke: bool) -> tuple[PGPS, dict[str, Any]]:
     and, per model of the `table1` grid (Base first), the late-run state that switches the
     model's couplings (`couplings_of`), at a generation where the TD3 actor takes its turn
     (every F generations: Algorithm 1 line 11)."""
-    sizes = SMOKE if smoke else {}
+    sizes = SMOKE_SIZES if smoke else {}
     config = for_task(task, **sizes)
     env = FullEpisodes(make_env(task))
     agent = PGPS(config, env, tests_of(smoke))
