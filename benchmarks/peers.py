@@ -73,10 +73,11 @@ def env_steps_per_update(algo: str) -> int:
 
 def evaluations(algo: str, steps: int, every: int) -> tuple[int, int]:
     """(num_evals for Brax, env steps between evaluations): about every `every` steps, on a
-    multiple of the training step, so that the run takes `steps` env steps (not more)."""
+    multiple of the training step, the last at the first of them to reach `steps` (as PGPS's
+    final evaluation is at the generation that reaches it)."""
     per_update = env_steps_per_update(algo)
     spacing = -(-every // per_update) * per_update
-    return steps // spacing + 1, spacing
+    return -(-steps // spacing) + 1, spacing
 
 
 def _device_put_replicated(tree, devices):

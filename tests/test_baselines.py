@@ -209,13 +209,14 @@ def test_the_command_refuses_an_unknown_algorithm(tmp_path):
     assert result.returncode == 2 and "CEM alone has no replay buffer" in result.stderr
 
 
-def test_the_peers_evaluate_on_their_training_steps_within_the_budget():
+def test_the_peers_evaluate_on_their_training_steps_until_they_reach_the_budget():
     from benchmarks.peers import env_steps_per_update, evaluations
-    for algo in ("sac", "ppo"):
-        num_evals, spacing = evaluations(algo, 1_000_000, 10_000)
-        assert spacing % env_steps_per_update(algo) == 0 and 10_000 <= spacing < 20_000
-        assert (num_evals - 1) * spacing <= 1_000_000 < num_evals * spacing
-    assert evaluations("ppo", 1_000_000, 10_000) == (62, 16_384)
+    for algo, every in (("sac", 10_000), ("ppo", 10_000), ("sac", 50_000), ("ppo", 50_000)):
+        num_evals, spacing = evaluations(algo, 1_000_000, every)
+        assert spacing % env_steps_per_update(algo) == 0 and every <= spacing < 2 * every
+        assert (num_evals - 2) * spacing < 1_000_000 <= (num_evals - 1) * spacing
+    assert evaluations("ppo", 1_000_000, 10_000) == (63, 16_384)
+    assert evaluations("sac", 1_000_000, 50_000) == (21, 50_048)  # 20 after the first
 
 
 def test_the_peers_run_seeds_side_by_side_as_each_alone_and_skip_the_done_ones(tmp_path):

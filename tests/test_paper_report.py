@@ -208,6 +208,16 @@ def test_table1_normalises_each_task_by_the_base_model_s_better_actor():
                                         ["pgps", "2.00", "1.200", "walker2d ant"]]
 
 
+def test_table1_scores_a_model_on_the_seeds_it_shares_with_the_base_model():
+    """Figure 4's 10-seed PGPS cell reused in a 5-seed Table 1: its seeds 6-10 left out."""
+    done = {("ant", "base"): {"final": {"mu": [10.0, 20.0], "td3": [0.0, 0.0]},
+                              "wall_s": 1.0, "seeds": [1, 2]},
+            ("ant", "pgps"): {"final": {"mu": [60.0, 30.0, 1e6], "td3": [0.0] * 3},
+                              "wall_s": 1.0, "seeds": [2, 1, 3]}}
+    # base 15; pgps on seeds 1 and 2: (30 + 60) / 2 = 45 -> 3
+    assert report.table1_rows(done)[1] == ["pgps", "3.00", "–", "ant"]
+
+
 def test_table1_compares_wall_clocks_only_of_cells_that_ran_alike():
     """A cell of other seeds, or run in parts (its wall-clock the sum of its programs'), is
     scored but not timed against the Base model's."""

@@ -307,14 +307,16 @@ def table1_rows(done: dict) -> list[list[str]]:
     """Table 1 of the paper from the done cells' results ({(task, model): result}): per model,
     the mean over tasks of its mean final return divided by the Base model's on the task (the
     Base model's final return of a run is the better of μ's and the TD3 actor's, as the paper
-    selects it), and the same ratio of wall-clock; only tasks where the Base model is done.
-    Wall-clocks are compared only where both cells ran the same seeds in the same programs
-    (`_ran_alike`), the tasks compared named after the ratio where they are fewer; "–" where
-    no task's cells ran alike."""
+    selects it), both over the seeds the two cells share (a cell with more seeds, Figure 4's
+    PGPS reused, say, is scored on the Base model's), and the same ratio of wall-clock; only
+    tasks where the Base model is done. Wall-clocks are compared only where both cells ran the
+    same seeds in the same programs (`_ran_alike`), the tasks compared named after the ratio
+    where they are fewer; "–" where no task's cells ran alike."""
     def score(task, model):
-        final = done[(task, model)]["final"]
-        per_run = np.maximum(final["mu"], final["td3"]) if model == "base" else final["mu"]
-        return float(np.mean(per_run))
+        result, base_seeds = done[(task, model)], set(done[(task, "base")]["seeds"])
+        shared = [i for i, seed in enumerate(result["seeds"]) if seed in base_seeds]
+        mu, td3 = (np.asarray(result["final"][actor])[shared] for actor in ("mu", "td3"))
+        return float(np.mean(np.maximum(mu, td3) if model == "base" else mu))
 
     rows = []
     for model in dict.fromkeys(model for _, model in done):
