@@ -10,7 +10,8 @@ generation gave it: population generation (`PGPS.generated_population`), CEM upd
 updates). Actors evaluation is the rest of the generation: its rollout, with the
 bookkeeping around the parts (key splits, metrics: microseconds against the rollout's
 milliseconds to seconds), so the four columns add up to the generation, as the paper's do.
-Medians of the repeats, after an untimed run.
+Medians of the repeats, after an untimed run; each of the generation's runs is kept too
+(`generation_ms_runs`), to show their spread.
 
 The models are states of one program that switch their couplings
 (`pgps_jax.agent.couplings`), so a task compiles its generation once. Two things make the
@@ -42,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.profile_generation import SMOKE_SIZES, late_state, tests_of
-from benchmarks.timing import median_seconds, provenance, results_path, timed
+from benchmarks.timing import provenance, repeated_seconds, results_path, timed
 from pgps_jax.agent.base import Played
 from pgps_jax.agent.config import for_task
 from pgps_jax.agent.couplings import couplings_of
@@ -145,14 +146,16 @@ def model_split(generation: Callable, parts: dict[str, tuple[Callable, Callable]
     is left for it); and whether its TD3 actor trained on L^A."""
     after, metrics, played = generation(state)
     guided = metrics["td3/guided_loss"]
-    total = 1e3 * median_seconds(generation, state, repeats=repeats)
+    runs = [1e3 * s for s in repeated_seconds(generation, state, repeats=repeats)]
+    total = float(np.median(runs))
     ms = {name: 1e3 * timed(part, *inputs(state, played, after, guided), repeats=repeats)[1]
           for name, (part, inputs) in parts.items()}
     ms["actors_evaluation"] = total - sum(ms.values())
     if ms["actors_evaluation"] <= 0:  # kept as measured: the table shows it
         print(f"warning: the parts timed alone ({ms}) took as long as the generation "
               f"({total:.3f} ms), leaving no time for its actors evaluation", flush=True)
-    return {"ms_per_generation": ms, "total_ms": total, "guided": bool(guided)}
+    return {"ms_per_generation": ms, "total_ms": total, "generation_ms_runs": runs,
+            "guided": bool(guided)}
 
 
 def task_split(task: str, repeats: int, smoke: bool) -> list[dict]:

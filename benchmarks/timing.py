@@ -17,15 +17,20 @@ def timed(fn, *args, repeats=5):
     return time.perf_counter() - start, median_seconds(fn, *args, repeats=repeats)
 
 
-def median_seconds(fn, *args, repeats=5) -> float:
-    """Median seconds of `repeats` calls of `fn(*args)`, each to the end of its outputs'
+def repeated_seconds(fn, *args, repeats=5) -> list[float]:
+    """Seconds of each of `repeats` calls of `fn(*args)`, each to the end of its outputs'
     computation (`fn` already compiled and run once)."""
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - start)
-    return float(np.median(times))
+    return times
+
+
+def median_seconds(fn, *args, repeats=5) -> float:
+    """Median of `repeated_seconds`."""
+    return float(np.median(repeated_seconds(fn, *args, repeats=repeats)))
 
 
 def results_path(given: Optional[str], default: str, smoke: bool) -> pathlib.Path:
