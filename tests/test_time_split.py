@@ -101,6 +101,9 @@ def test_a_model_s_split_has_table1_s_columns_and_says_whether_it_trained_on_l_a
     ms = split["ms_per_generation"]
     assert set(ms) == {phase for phase, _ in TABLE1_COLUMNS}
     assert split["guided"] is True  # the full model's TD3 actor, lagging, trained on L^A
+    runs = split["generation_ms_runs"]  # each timed run kept; the split is of their median
+    assert len(runs) == 2 and min(runs) > 0 and split["total_ms"] == np.median(runs)
+    assert sum(ms.values()) == pytest.approx(split["total_ms"])
 
 
 def test_table1_s_time_averages_each_model_s_normalised_phases_over_the_tasks():
