@@ -48,6 +48,7 @@ from pgps_jax.agent.base import Played
 from pgps_jax.agent.config import for_task
 from pgps_jax.agent.couplings import couplings_of
 from pgps_jax.agent.pgps import PGPS
+from pgps_jax.cli.run_dir import write_atomic
 from pgps_jax.envs import State, make_env
 from pgps_jax.experiments.paper.grid import cells
 
@@ -223,11 +224,10 @@ def main():
             model["normalised_sum"] = model["total_ms"] / base
             print(json.dumps({"task": task, **model}), flush=True)
         result["tasks"].append({"task": task, "models": models})
+        # after every task: a cut-off run keeps its part
         out.parent.mkdir(parents=True, exist_ok=True)
-        with open(out, "w") as f:  # after every task: a cut-off run keeps its part
-            json.dump(result, f, indent=1)
-        with open(out.with_suffix(".md"), "w") as f:
-            f.write(table1_time(result["tasks"]))
+        write_atomic(out, json.dumps(result, indent=1).encode())
+        write_atomic(out.with_suffix(".md"), table1_time(result["tasks"]).encode())
     print(f"written: {out}")
 
 
