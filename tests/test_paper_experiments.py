@@ -421,6 +421,41 @@ def test_a_cell_in_parts_keys_its_seeds_as_the_whole_cell_and_merges_their_resul
             "pgps", for_task("hopper", **TINY), stale, 1, make_env("hopper")), "hopper")
 
 
+def test_a_part_whose_checkpoint_was_lost_runs_again_from_its_start(in_parts, tmp_path):
+    """A part cut off together with its machine leaves its curves, but no checkpoint, where
+    its results were copied: it runs again from its first generation,
+    its stale files replaced, to the part's uninterrupted result; a done part beside it is
+    kept as it is."""
+    out, _ = in_parts
+    done = out / "figure4" / "hopper" / "pgps"
+    cell = tmp_path / "cell"
+    cell.mkdir()
+    shutil.copy(done / "result_seeds2-2.json", cell)
+    first = runner.parts(IN_PARTS)[0]
+
+    def cut_off(generation, steps):
+        if generation == 3:
+            raise Stop
+    every, runner.FILES_EVERY_S = runner.FILES_EVERY_S, 0.0
+    try:
+        with pytest.raises(Stop):
+            runner.run_cell(HOPPER, cell, IN_PARTS, cut_off, first)
+    finally:
+        runner.FILES_EVERY_S = every
+    shutil.rmtree(cell / "checkpoints_seeds1-1")  # the machine went back with it
+    stale = (cell / "seed1_generations.csv").read_bytes()
+    generations = []
+    result = runner.run_cell(HOPPER, cell, IN_PARTS,
+                             lambda generation, steps: generations.append(generation), first)
+    assert generations[0] == 1
+    assert {**result, "wall_s": 0} == {
+        **json.loads((done / "result_seeds1-1.json").read_text()), "wall_s": 0}
+    for name in (runner.seed_file(1), runner.seed_file(1, "td3"), "seed1_generations.csv"):
+        assert (cell / name).read_bytes() == (done / name).read_bytes(), name
+    assert (cell / "seed1_generations.csv").read_bytes() != stale
+    assert json.loads((cell / runner.RESULT).read_text())["seeds"] == [1, 2]  # merged
+
+
 def test_cells_side_by_side_compute_what_they_compute_in_turn(in_parts, tmp_path, cache):
     """Programs in processes of their own, two at a time (the two parts of one cell, then a
     cell that fails): the parts give the results of the in-turn run, byte for byte, its
