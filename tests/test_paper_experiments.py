@@ -350,6 +350,20 @@ def test_parts_give_a_done_cell_its_further_seeds():
 IN_PARTS = dataclasses.replace(BUDGET, seeds_per_program=1)
 
 
+def _cut_off_after_generation_3(cell: pathlib.Path, part: runner.Seeds) -> None:
+    """Runs `part` of the hopper cell in `cell` until it is cut off after its third
+    generation, its files written after every generation (its checkpoint after the second)."""
+    def cut_off(generation, steps):
+        if generation == 3:
+            raise Stop
+    every, runner.FILES_EVERY_S = runner.FILES_EVERY_S, 0.0
+    try:
+        with pytest.raises(Stop):
+            runner.run_cell(HOPPER, cell, IN_PARTS, cut_off, part)
+    finally:
+        runner.FILES_EVERY_S = every
+
+
 @pytest.fixture(scope="module")
 def in_parts(tmp_path_factory):
     """The cell's seeds in programs of one seed each, in turn; the second part cut off after
@@ -357,16 +371,7 @@ def in_parts(tmp_path_factory):
     the second) and continued from its checkpoint."""
     out = tmp_path_factory.mktemp("paper_in_parts")
     cell = out / "figure4" / "hopper" / "pgps"
-
-    def cut_off(generation, steps):
-        if generation == 3:
-            raise Stop
-    every, runner.FILES_EVERY_S = runner.FILES_EVERY_S, 0.0
-    try:
-        with pytest.raises(Stop):
-            runner.run_cell(HOPPER, cell, IN_PARTS, cut_off, runner.parts(IN_PARTS)[1])
-    finally:
-        runner.FILES_EVERY_S = every
+    _cut_off_after_generation_3(cell, runner.parts(IN_PARTS)[1])
     assert (cell / "checkpoints_seeds2-2").is_dir() and not (cell / runner.RESULT).exists()
     for name in ("seed2_generations.csv", "generation_times_seeds2-2.csv"):
         assert len(read_csv(cell / name)[1]) == 3, name  # past the checkpoint's two
@@ -432,16 +437,7 @@ def test_a_part_whose_checkpoint_was_lost_runs_again_from_its_start(in_parts, tm
     cell.mkdir()
     shutil.copy(done / "result_seeds2-2.json", cell)
     first = runner.parts(IN_PARTS)[0]
-
-    def cut_off(generation, steps):
-        if generation == 3:
-            raise Stop
-    every, runner.FILES_EVERY_S = runner.FILES_EVERY_S, 0.0
-    try:
-        with pytest.raises(Stop):
-            runner.run_cell(HOPPER, cell, IN_PARTS, cut_off, first)
-    finally:
-        runner.FILES_EVERY_S = every
+    _cut_off_after_generation_3(cell, first)
     shutil.rmtree(cell / "checkpoints_seeds1-1")  # the machine went back with it
     stale = (cell / "seed1_generations.csv").read_bytes()
     generations = []
