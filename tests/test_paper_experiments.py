@@ -62,12 +62,14 @@ def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrup
         assert [r["Step"] for r in curves["td3"][1]] == [r["Step"] for r in curves[""][1]]
         assert [r["Mean"] for r in curves["td3"][1]] != [r["Mean"] for r in curves[""][1]]
         header, rows = read_csv(cell / f"seed{seed}_generations.csv")
-        assert header == ["generation", "env_steps", "T", "q_filter_active",
+        assert header == ["generation", "env_steps", "T", "rollout_steps", "q_filter_active",
                           "td3_in_population", "return_0", "return_1", "elite_return",
                           "td3_return", "guided_loss", "beta", "cem_var_mean", "cem_damping"]
         for r in rows:  # the generation's elite is its best return
             assert float(r["elite_return"]) == pytest.approx(
                 max(float(r["return_0"]), float(r["return_1"])), rel=1e-6)
+            # an episode, or test episodes that had to end (their limit the evaluation's)
+            assert 1 <= int(r["rollout_steps"]) <= max(int(r["T"]), BUDGET.evaluation.steps)
         assert [int(r["generation"]) for r in rows] == list(range(1, len(rows) + 1))
         assert len(rows) <= result["generations"]
         began = [TINY["warmup_steps"]] + [int(r["env_steps"]) for r in rows[:-1]]
@@ -246,7 +248,7 @@ def test_an_unknown_name_or_a_bad_value_is_refused_with_the_choices():
 
 
 def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninterrupted,
-                                                                         tmp_path):
+                                                                         tmp_path, monkeypatch):
     out, (result,) = uninterrupted
     directory = tmp_path / "cell"
 
@@ -256,6 +258,12 @@ def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninter
     with pytest.raises(Stop):
         runner.run_cell(HOPPER, directory, BUDGET, cut_off)
     assert not (directory / runner.RESULT).exists()
+    with monkeypatch.context() as patch:  # a runner whose generations have one more column
+        columns = runner._population_metrics
+        patch.setattr(runner, "_population_metrics", lambda agent: columns(agent)[:1] * 2
+                      + columns(agent)[1:])
+        with pytest.raises(UsageError, match="older runner .*per-generation columns"):
+            runner.run_cell(HOPPER, directory, BUDGET)
     generations = []
     resumed = runner.run_cell(HOPPER, directory, BUDGET,
                               lambda generation, steps: generations.append(generation))

@@ -177,6 +177,9 @@ def test_population_layout_and_counters():
     assert int(new.total_steps) == 100 + int(metrics["gen/interaction_steps"])
     assert int(new.buffer.size) == int(new.total_steps)
     assert 4 <= int(metrics["gen/interaction_steps"]) <= 4 * 10     # T_init = 10 per actor
+    # the rollout lasts as long as its longest episode: the test episodes of the first
+    # evaluation, due at once, ride along, the next not falling due for 10k steps
+    assert int(metrics["gen/rollout_steps"]) == int(played.episodes.lengths.max())
     # F = 1: the TD3 actor was injected in the last slot and its return is reported
     assert bool(metrics["td3/in_population"])
     assert float(metrics["td3/return"]) == float(metrics["pop/return_3"])

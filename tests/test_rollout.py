@@ -118,17 +118,35 @@ def test_episodes_that_do_not_drive_the_loop_carry_on_in_the_next_rollout():
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
     drive = jnp.asarray([True, False])
     params = jnp.asarray([[0.0], [1.0]])        # rewards 1 and 2 a step
-    episodes, _, _ = play(env, constant_policy, params,
-                          begin_episodes(env, keys, jnp.asarray([2, 6])), 6, drive=drive)
+    episodes, _, _, loop_steps = play(env, constant_policy, params,
+                                      begin_episodes(env, keys, jnp.asarray([2, 6])), 6,
+                                      drive=drive)
     np.testing.assert_array_equal(episodes.lengths, [2, 2])
+    assert int(loop_steps) == 2  # as long as the episode that drives it
     np.testing.assert_array_equal(episodes.alive, [False, True])
     fresh = begin_episodes(env, keys[:1], jnp.asarray([3]))
     episodes = jax.tree.map(lambda a, b: jnp.concatenate([a, b[1:]]), fresh, episodes)
-    episodes, transitions, valid = play(env, constant_policy, params, episodes, 6, drive=drive)
+    episodes, transitions, valid, loop_steps = play(env, constant_policy, params, episodes, 6,
+                                                    drive=drive)
     np.testing.assert_array_equal(episodes.lengths, [3, 5])
+    assert int(loop_steps) == 3
     np.testing.assert_array_equal(episodes.returns, [3.0, 10.0])
     np.testing.assert_array_equal(transitions.obs[:3, 1, 0], [2, 3, 4])   # from where it was
     np.testing.assert_array_equal(valid.sum(0), [3, 3])
+
+
+def test_the_loop_counts_its_own_steps_for_each_batch_under_vmap():
+    """The loop's steps are its longest driving episode's (a terminal step ends one early);
+    vmapped over two batches, each counts its own, though their loop runs for the longer."""
+    env = Countdown(terminate_at=4)
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    params = jnp.zeros((2, 1))
+
+    def loop_steps(limits):
+        return play(env, constant_policy, params, begin_episodes(env, keys, limits), 8,
+                    record=False)[3]
+    np.testing.assert_array_equal(jax.vmap(loop_steps)(jnp.asarray([[2, 3], [8, 1], [0, 0]])),
+                                  [3, 4, 0])
 
 
 def test_only_the_first_episodes_are_recorded_when_asked():
@@ -141,8 +159,8 @@ def test_only_the_first_episodes_are_recorded_when_asked():
     def played(**kwargs):
         return play(env, constant_policy, params, begin_episodes(env, keys, jnp.asarray([4, 6, 5])),
                     6, **kwargs)
-    full_episodes, full, full_valid = played()
-    episodes, transitions, valid = played(recorded=1)
+    full_episodes, full, full_valid, _ = played()
+    episodes, transitions, valid, _ = played(recorded=1)
     equal = lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     jax.tree.map(equal, episodes, full_episodes)
     assert transitions.obs.shape == (6, 1, 2) and valid.shape == (6, 1)

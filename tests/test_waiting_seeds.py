@@ -98,7 +98,9 @@ def test_a_waiting_seed_does_not_hurry_its_evaluation():
     played = rollout(overdue, actors, limits, key, rows=10, active=True)
     assert not waited[0].evaluation.episodes.lengths.any() and not waited[1].lengths.any()
     assert (played[0].evaluation.episodes.lengths == TESTS.steps).all()
-    assert bool(played[4].done) and not bool(waited[4].done)
+    assert bool(played[5].done) and not bool(waited[5].done)
+    # the hurried test episodes, not the actors' (at most 10 steps), set the rollout's length
+    assert int(played[4]) == TESTS.steps > 10 and int(waited[4]) == 0
 
 
 def test_programs_for_every_seed_refuse_a_choice_of_seeds():

@@ -61,6 +61,7 @@ class Played:
     transitions: replay.Transition  # [t_max, N'] what they met, row by loop step
     valid: jax.Array             # [t_max, N'] rows to store in the buffer
     limit: jax.Array             # [] int32 the episode limit T of this generation
+    loop_steps: jax.Array        # [] int32 sequential env steps of the rollout (`rollout`)
     td3_turn: jax.Array          # [] bool, the TD3 actor played
     train_key: jax.Array         # PRNG key of the generation's learning
     evaluation: evaluation.Report  # the test evaluation, if one ended in this rollout
@@ -156,7 +157,7 @@ class Agent:
                 exploration: tuple[jax.Array, jax.Array] | None = None,
                 active: jax.Array | bool = True
                 ) -> tuple[TrainState, EpisodeState, replay.Transition, jax.Array,
-                           evaluation.Report]:
+                           jax.Array, evaluation.Report]:
         """One episode of each of `actors` [B, P] (step limits [B]) from fresh start states,
         with the test episodes of the evaluation under way (begun here if due) in extra
         slots that do not drive the loop (they add no sequential env steps).
@@ -164,8 +165,9 @@ class Agent:
         exploration: (key, std [B]): Gaussian noise of that std on each actor's actions.
         active: False plays no step (every limit 0, the evaluation not hurried).
         Returns `state` with its evaluation advanced, the actors' episodes, their
-        transitions [rows, B] (empty unless `record`) and validity, and the evaluation's
-        report.
+        transitions [rows, B] (empty unless `record`) and validity, the sequential env steps
+        the rollout took (its longest episode, or the test episodes it had to finish before
+        the next evaluation falls due), and the evaluation's report.
         """
         env, tested = self.env, self.evaluation_config
         num_rollout = actors.shape[0]
@@ -180,7 +182,7 @@ class Agent:
         if exploration is not None:
             noise_key, std = exploration
             noise = (noise_key, jnp.concatenate([std, jnp.zeros((num_tests,))]))
-        batch, transitions, valid = play(
+        batch, transitions, valid, loop_steps = play(
             env, self.policy,
             jnp.concatenate([actors, evaluation.repeat_actors(tests.actors, tested.episodes)]),
             env_batches.concatenate(episodes, tests.episodes),
@@ -191,7 +193,7 @@ class Agent:
         mine = lambda x: x[:rows]
         return (state.replace(evaluation=tests),
                 env_batches.rows(batch, 0, num_rollout),
-                jax.tree.map(mine, transitions), mine(valid), report)
+                jax.tree.map(mine, transitions), mine(valid), loop_steps, report)
 
     def counters_and_evaluation(self, state: TrainState, played: Played) -> dict:
         """The metrics every algorithm reports: the generation's counters (of the state it
@@ -201,6 +203,7 @@ class Agent:
                 "gen/total_steps": state.total_steps,
                 "gen/episode_limit": played.limit,
                 "gen/interaction_steps": played.episodes.lengths.sum(),
+                "gen/rollout_steps": played.loop_steps,
                 "pop/unstable_episodes": played.episodes.unstable.sum(),
                 "eval/done": report.done,
                 "eval/step": report.step,

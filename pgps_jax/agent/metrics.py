@@ -33,6 +33,9 @@ _HEAD = (
     Metric("gen/episode_limit", "T", "step limit T of this generation's episodes (eq. 4)"),
     Metric("gen/interaction_steps", "interaction_steps",
            "env steps the generation's episodes took (the TD3 updates that follow)"),
+    Metric("gen/rollout_steps", "rollout_steps",
+           "sequential env steps of the generation's rollout: its longest episode, or the test "
+           "episodes it had to finish (the rollout's cost; seeds vmapped all wait for the most)"),
 )
 _TAIL = (
     Metric("pop/return_mean", "return_mean", "mean return of the population"),

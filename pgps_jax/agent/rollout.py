@@ -100,7 +100,8 @@ def begin_episodes(env: Env, reset_keys: jax.Array, step_limits: jax.Array) -> E
 def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeState,
          max_steps: int, record: bool = True, gamma: float = 1.0,
          drive: jax.Array | None = None, noise: tuple[jax.Array, jax.Array] | None = None,
-         recorded: int | None = None) -> tuple[EpisodeState, Transition, jax.Array]:
+         recorded: int | None = None
+         ) -> tuple[EpisodeState, Transition, jax.Array, jax.Array]:
     """Steps every live episode until none of those marked in `drive` [B] (default: all) is
     alive; the others advance alongside and may still be alive at the end.
 
@@ -108,9 +109,11 @@ def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeStat
     (the TD3 baseline's exploration); the transitions hold the noisy actions.
 
     Returns the episodes, the transitions [max_steps, R] of the first R = `recorded` episodes
-    (default all B; row t = the loop's t-th step; empty [0, R] unless `record`) and their
-    validity [max_steps, R]. The loop takes at most `max_steps` steps: no episode that drives
-    it may have more steps left.
+    (default all B; row t = the loop's t-th step; empty [0, R] unless `record`), their
+    validity [max_steps, R] and the steps the loop took (int32 []: the most that an episode
+    driving it took here; under vmap, each batch's own, while the loop of them all runs as
+    long as the longest). The loop takes at most `max_steps` steps: no episode that drives it
+    may have more steps left.
     """
     batch = episodes.alive.shape[0]
     recorded = batch if recorded is None else recorded
@@ -154,7 +157,7 @@ def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeStat
     carry = dict(t=jnp.zeros((), jnp.int32), episodes=episodes,
                  transitions=empty, valid=jnp.zeros((rows, recorded), bool))
     c = jax.lax.while_loop(lambda c: jnp.any(c["episodes"].alive & drive), step, carry)
-    return c["episodes"], c["transitions"], c["valid"]
+    return c["episodes"], c["transitions"], c["valid"], c["t"]
 
 
 def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: jax.Array,
@@ -166,9 +169,9 @@ def run_episodes(env: Env, policy: Policy, params: chex.ArrayTree, reset_keys: j
     record: keep the transitions (population rollouts) or only returns (evaluation).
     gamma: discount of the `discounted` returns (J(s_0) of Appendix A).
     """
-    e, transitions, valid = play(env, policy, params,
-                                    begin_episodes(env, reset_keys, step_limits), max_steps,
-                                    record=record, gamma=gamma)
+    e, transitions, valid, _ = play(env, policy, params,
+                                       begin_episodes(env, reset_keys, step_limits), max_steps,
+                                       record=record, gamma=gamma)
     return Episodes(returns=e.returns, discounted=e.discounted, lengths=e.lengths,
                     unstable=e.unstable, transitions=transitions, valid=valid)
 

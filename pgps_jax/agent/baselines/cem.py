@@ -18,7 +18,8 @@ from pgps_jax.agent.metrics import Metric, chosen, population_return_key
 from pgps_jax.agent.networks import flatten
 from pgps_jax.agent.pgps import episode_limit
 
-_COUNTERS = ("gen/generation", "gen/total_steps", "gen/episode_limit", "gen/interaction_steps")
+_COUNTERS = ("gen/generation", "gen/total_steps", "gen/episode_limit", "gen/interaction_steps",
+             "gen/rollout_steps")
 _SEARCH = ("pop/return_mean", "pop/return_std", "cem/elite_return", "cem/var_mean",
            "cem/damping")
 
@@ -76,12 +77,13 @@ class CEMAlone(Agent):
         if config.elitism:
             population = population.at[0].set(state.cem.elite)
         limit = episode_limit(state.total_steps, config)
-        state, episodes, transitions, valid, report = self.rollout(
+        state, episodes, transitions, valid, loop_steps, report = self.rollout(
             state, population, jnp.full((config.pop_size,), limit), reset_key, rows=0,
             record=False, active=active)
         return state.replace(key=next_key), Played(
             population=population, episodes=episodes, transitions=transitions, valid=valid,
-            limit=limit, td3_turn=jnp.zeros((), bool), train_key=next_key, evaluation=report)
+            limit=limit, loop_steps=loop_steps, td3_turn=jnp.zeros((), bool), train_key=next_key,
+            evaluation=report)
 
     def learn(self, state: TrainState, played: Played) -> tuple[TrainState, dict]:
         """The CEM update from the episodes' returns."""

@@ -226,6 +226,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     eval_keys = jax.device_put(jax.vmap(jax.random.PRNGKey)(numbers + 100), sharding)
     checkpoints = Checkpoints(directory / part_file(CHECKPOINTS, part), keep=2)
     at_budget_file = directory / part_file(AT_BUDGET, part)
+    population_keys = [m.key for m in _population_metrics(agent)]
     start = time.perf_counter()
     try:
         if checkpoints.latest_step() is None:
@@ -241,6 +242,11 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             if not isinstance(meta["curves"], dict):
                 raise UsageError(f"{checkpoints.directory} was written by an older runner "
                                  "(μ's curves only); remove it to run the cell again")
+            if any(len(row) != 1 + len(population_keys) for rows in meta["populations"]
+                   for row in rows):
+                raise UsageError(f"{checkpoints.directory} was written by an older runner "
+                                 "(other per-generation columns); remove it to run the cell "
+                                 "again")
             shapes = loop.placed(loop.state_shapes(agent, keys, eval_keys, seeds=True),
                                  sharding)
             generation, state, meta = checkpoints.restore_latest(shapes)
@@ -253,7 +259,6 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
         steps = np.asarray(jax.device_get(state.total_steps))
         at_budget = AtBudget.read(at_budget_file, part.count, generation)
         at_budget.record(generation, steps, state, agent, budget, at_budget_file)
-        population_keys = [m.key for m in _population_metrics(agent)]
         written, saved = time.perf_counter(), generation
 
         def save():
@@ -485,13 +490,15 @@ def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
 
 def _population_metrics(agent) -> list[Metric]:
     """The per-generation metrics of `seed<k>_generations.csv`, after the generation number:
-    env steps, episode limit, whether the critic chose slots [N/2, N) and the TD3 actor played
-    slot N−1, the return of every slot (slot 0 the elite; Figure 6 compares the Q-filtered
+    env steps, episode limit, the rollout's sequential steps (a program of several seeds plays
+    as many as the most of them), whether the critic chose slots [N/2, N) and the TD3 actor
+    played slot N−1, the return of every slot (slot 0 the elite; Figure 6 compares the Q-filtered
     slots with the sampled ones), and what shapes the next population: the generation's
     elite and TD3 returns, the guided loss and β (eq. 3), Σ's mean and damping; those of them
     that the agent reports."""
     schema = {m.key: m for m in agent.generation_metrics()}
-    keys = ["gen/total_steps", "gen/episode_limit", "gen/q_filter_active", "td3/in_population",
+    keys = ["gen/total_steps", "gen/episode_limit", "gen/rollout_steps", "gen/q_filter_active",
+            "td3/in_population",
             *(population_return_key(i) for i in range(agent.config.pop_size)),
             "cem/elite_return", "td3/return", "td3/guided_loss", "td3/beta", "cem/var_mean",
             "cem/damping"]
