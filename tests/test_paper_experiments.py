@@ -83,9 +83,15 @@ def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrup
     assert json.loads((cell / runner.RESULT).read_text()) == result
     assert not (cell / "checkpoints").exists()  # a done cell keeps its results only
     header, rows = read_csv(cell / runner.GENERATION_TIMES)
-    assert header == ["generation", "play_s", "learn_s"]
+    assert header == ["generation", "play_s", "learn_s", "rollout_steps"]
     assert [int(r["generation"]) for r in rows] == list(range(1, result["generations"] + 1))
     assert all(float(r["play_s"]) > 0 and float(r["learn_s"]) > 0 for r in rows)
+    # the program's rollout is as long as its seeds' longest: in all, at least each seed's
+    # own steps and at most their sum
+    program = [int(r["rollout_steps"]) for r in rows]
+    own = [sum(int(r["rollout_steps"]) for r in read_csv(cell / f"seed{seed}_generations.csv")[1])
+           for seed in (1, 2)]
+    assert min(program) >= 1 and max(own) <= sum(program) <= sum(own)
 
 
 def test_each_seed_stops_at_its_own_budget(uninterrupted):

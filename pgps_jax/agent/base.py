@@ -61,7 +61,7 @@ class Played:
     transitions: replay.Transition  # [t_max, N'] what they met, row by loop step
     valid: jax.Array             # [t_max, N'] rows to store in the buffer
     limit: jax.Array             # [] int32 the episode limit T of this generation
-    loop_steps: jax.Array        # [] int32 sequential env steps of the rollout (`rollout`)
+    rollout_steps: jax.Array     # [] int32 sequential env steps of the rollout (`rollout`)
     td3_turn: jax.Array          # [] bool, the TD3 actor played
     train_key: jax.Array         # PRNG key of the generation's learning
     evaluation: evaluation.Report  # the test evaluation, if one ended in this rollout
@@ -182,7 +182,7 @@ class Agent:
         if exploration is not None:
             noise_key, std = exploration
             noise = (noise_key, jnp.concatenate([std, jnp.zeros((num_tests,))]))
-        batch, transitions, valid, loop_steps = play(
+        batch, transitions, valid, rollout_steps = play(
             env, self.policy,
             jnp.concatenate([actors, evaluation.repeat_actors(tests.actors, tested.episodes)]),
             env_batches.concatenate(episodes, tests.episodes),
@@ -193,7 +193,7 @@ class Agent:
         mine = lambda x: x[:rows]
         return (state.replace(evaluation=tests),
                 env_batches.rows(batch, 0, num_rollout),
-                jax.tree.map(mine, transitions), mine(valid), loop_steps, report)
+                jax.tree.map(mine, transitions), mine(valid), rollout_steps, report)
 
     def counters_and_evaluation(self, state: TrainState, played: Played) -> dict:
         """The metrics every algorithm reports: the generation's counters (of the state it
@@ -203,7 +203,7 @@ class Agent:
                 "gen/total_steps": state.total_steps,
                 "gen/episode_limit": played.limit,
                 "gen/interaction_steps": played.episodes.lengths.sum(),
-                "gen/rollout_steps": played.loop_steps,
+                "gen/rollout_steps": played.rollout_steps,
                 "pop/unstable_episodes": played.episodes.unstable.sum(),
                 "eval/done": report.done,
                 "eval/step": report.step,

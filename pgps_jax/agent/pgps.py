@@ -147,12 +147,12 @@ class PGPS(Agent):
             actors = jnp.concatenate([population, flatten(state.td3.actor)[None]])
             limits = jnp.append(limits, jnp.where(td3_turn, limit, 0))
         with jax.named_scope("actors_evaluation"):
-            state, episodes, transitions, valid, loop_steps, report = self.rollout(
+            state, episodes, transitions, valid, rollout_steps, report = self.rollout(
                 state, actors, limits, reset_key, rows=config.t_max, active=active)
         state = state.replace(key=next_key)
         return state, Played(population=population, episodes=episodes,
                              transitions=transitions, valid=valid, limit=limit,
-                             loop_steps=loop_steps, td3_turn=td3_turn, train_key=train_key,
+                             rollout_steps=rollout_steps, td3_turn=td3_turn, train_key=train_key,
                              evaluation=report)
 
     def learn(self, state: TrainState, played: Played) -> tuple[TrainState, dict]:

@@ -77,13 +77,13 @@ class CEMAlone(Agent):
         if config.elitism:
             population = population.at[0].set(state.cem.elite)
         limit = episode_limit(state.total_steps, config)
-        state, episodes, transitions, valid, loop_steps, report = self.rollout(
+        state, episodes, transitions, valid, rollout_steps, report = self.rollout(
             state, population, jnp.full((config.pop_size,), limit), reset_key, rows=0,
             record=False, active=active)
         return state.replace(key=next_key), Played(
             population=population, episodes=episodes, transitions=transitions, valid=valid,
-            limit=limit, loop_steps=loop_steps, td3_turn=jnp.zeros((), bool), train_key=next_key,
-            evaluation=report)
+            limit=limit, rollout_steps=rollout_steps, td3_turn=jnp.zeros((), bool),
+            train_key=next_key, evaluation=report)
 
     def learn(self, state: TrainState, played: Played) -> tuple[TrainState, dict]:
         """The CEM update from the episodes' returns."""

@@ -64,13 +64,13 @@ class CEMRL(Agent):
         reset_key, train_key, next_key = jax.random.split(state.key, 3)
         population = state.next_population
         limit = jnp.asarray(config.t_max, jnp.int32)
-        state, episodes, transitions, valid, loop_steps, report = self.rollout(
+        state, episodes, transitions, valid, rollout_steps, report = self.rollout(
             state, population, jnp.full((config.pop_size,), limit), reset_key,
             rows=config.t_max, active=active)
         return state.replace(key=next_key), Played(
             population=population, episodes=episodes, transitions=transitions, valid=valid,
-            limit=limit, loop_steps=loop_steps, td3_turn=jnp.zeros((), bool), train_key=train_key,
-            evaluation=report)
+            limit=limit, rollout_steps=rollout_steps, td3_turn=jnp.zeros((), bool),
+            train_key=train_key, evaluation=report)
 
     def learn(self, state: TrainState, played: Played) -> tuple[TrainState, dict]:
         """Buffer, CEM update, then the next population with its first half trained."""

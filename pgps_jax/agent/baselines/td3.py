@@ -20,9 +20,8 @@ from pgps_jax.agent.metrics import Metric, chosen
 from pgps_jax.agent.networks import flatten
 
 _METRICS = ("gen/generation", "gen/total_steps", "gen/episode_limit", "gen/interaction_steps",
-            "gen/rollout_steps",
-            "td3/return", "td3/in_population", "td3/critic_loss", "td3/actor_loss",
-            "pop/unstable_episodes")
+            "gen/rollout_steps", "td3/return", "td3/in_population", "td3/critic_loss",
+            "td3/actor_loss", "pop/unstable_episodes")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -52,13 +51,13 @@ class TD3Alone(Agent):
         reset_key, noise_key, train_key, next_key = jax.random.split(state.key, 4)
         actors = jnp.repeat(flatten(state.td3.actor)[None], k, axis=0)
         limit = jnp.asarray(config.t_max, jnp.int32)
-        state, episodes, transitions, valid, loop_steps, report = self.rollout(
+        state, episodes, transitions, valid, rollout_steps, report = self.rollout(
             state, actors, jnp.full((k,), limit), reset_key, rows=config.t_max,
             exploration=(noise_key, jnp.full((k,), config.exploration_noise)), active=active)
         return state.replace(key=next_key), Played(
             population=actors, episodes=episodes, transitions=transitions, valid=valid,
-            limit=limit, loop_steps=loop_steps, td3_turn=jnp.ones((), bool), train_key=train_key,
-            evaluation=report)
+            limit=limit, rollout_steps=rollout_steps, td3_turn=jnp.ones((), bool),
+            train_key=train_key, evaluation=report)
 
     def learn(self, state: TrainState, played: Played) -> tuple[TrainState, dict]:
         """The episodes' transitions enter the buffer; as many TD3 updates as they took

@@ -20,14 +20,15 @@ A cell's folder holds, per seed, `seed<k>.csv`: its test evaluations up to the b
 authors' format (Step, Mean, Std, Reward1..RewardE of the actor the algorithm reports: μ, or
 TD3's actor for TD3 alone; the columns of a training run's `eval.csv`), the same of each other
 evaluated actor in `seed<k>_<actor>.csv` (PGPS: the TD3 actor's and the elite's, Figure 5),
-and `seed<k>_generations.csv`: per generation, the return of every slot of the population
-(Figure 6: the Q-filtered slots against the sampled ones); `generation_times.csv`: per
-generation, the seconds of its play and learn phases; `result.json` once the cell is
-done (the final evaluation of every evaluated actor on fresh start states
-PRNGKey(k + 10,000), the settings, the wall-clock and the device); and `checkpoints/` while
-it runs, written every `Budget.checkpoint_every` generations and when SIGINT or SIGTERM stops
-it (after the generation under way). A cell is continued or counted as done only under the
-settings it was started with, its number of seeds aside.
+and `seed<k>_generations.csv`: per generation, the sequential env steps of its rollout and
+the return of every slot of the population (Figure 6: the Q-filtered slots against the
+sampled ones); `generation_times.csv`: per generation of the program, the seconds of its
+play and learn phases and its rollout's sequential steps (the most of its seeds');
+`result.json` once the cell is done (the final evaluation of every evaluated actor on fresh
+start states PRNGKey(k + 10,000), the settings, the wall-clock and the device); and
+`checkpoints/` while it runs, written every `Budget.checkpoint_every` generations and when
+SIGINT or SIGTERM stops it (after the generation under way). A cell is continued or
+counted as done only under the settings it was started with, its number of seeds aside.
 
 A cell's seeds can also run in parts (`Budget.seeds_per_program`): each part a program of its
 own, its seeds keyed as in the whole cell, so the parts can run in turn or side by side in
@@ -69,6 +70,9 @@ CHECKPOINTS = "checkpoints"
 PART = "_seeds"
 """What a part's own files add to the cell's names, before its seeds' span."""
 GENERATION_TIMES = "generation_times.csv"
+TIMES_COLUMNS = ["generation", "play_s", "learn_s", "rollout_steps"]
+"""`GENERATION_TIMES`' columns: the seconds of a generation's phases and its rollout's
+sequential env steps, the most that one of the program's seeds played."""
 FILES_EVERY_S = 60.0
 """Seconds between writes of a running cell's curves and per-generation files besides those
 at its checkpoints: a cell cut off between checkpoints keeps its curves to within this."""
@@ -242,8 +246,9 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             if not isinstance(meta["curves"], dict):
                 raise UsageError(f"{checkpoints.directory} was written by an older runner "
                                  "(μ's curves only); remove it to run the cell again")
-            if any(len(row) != 1 + len(population_keys) for rows in meta["populations"]
-                   for row in rows):
+            if (any(len(row) != 1 + len(population_keys) for rows in meta["populations"]
+                    for row in rows)
+                    or any(len(row) != len(TIMES_COLUMNS) for row in meta.get("times", []))):
                 raise UsageError(f"{checkpoints.directory} was written by an older runner "
                                  "(other per-generation columns); remove it to run the cell "
                                  "again")
@@ -272,8 +277,9 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                 active = playing_seeds(steps, budget, programs.generation_steps, part.count)
                 state, done = loop.generation(programs, state, time_phases=True, active=active)
                 generation += 1
-                times.append([generation, done.play_seconds, done.seconds - done.play_seconds])
                 m = done.metrics
+                times.append([generation, done.play_seconds, done.seconds - done.play_seconds,
+                              int(m["gen/rollout_steps"][active].max())])
                 for seed in np.flatnonzero(m["eval/done"] & active):
                     _add_evaluation(curves, m, seed, int(m["eval/step"][seed]))
                 for seed in np.flatnonzero(active):
@@ -497,8 +503,8 @@ def _population_metrics(agent) -> list[Metric]:
     elite and TD3 returns, the guided loss and β (eq. 3), Σ's mean and damping; those of them
     that the agent reports."""
     schema = {m.key: m for m in agent.generation_metrics()}
-    keys = ["gen/total_steps", "gen/episode_limit", "gen/rollout_steps", "gen/q_filter_active",
-            "td3/in_population",
+    keys = ["gen/total_steps", "gen/episode_limit", "gen/rollout_steps",
+            "gen/q_filter_active", "td3/in_population",
             *(population_return_key(i) for i in range(agent.config.pop_size)),
             "cem/elite_return", "td3/return", "td3/guided_loss", "td3/beta", "cem/var_mean",
             "cem/damping"]
@@ -510,11 +516,11 @@ def _write_files(directory: pathlib.Path, curves: dict, populations: list, times
     """The part's curves (`_write_curves`), per-generation metrics (`_write_populations`) and
     `GENERATION_TIMES`: per generation, the wall-clock seconds of its play phase (the
     rollouts, the test episodes riding along) and of its learn phase (the buffer, the CEM and
-    the TD3 updates), shared by the program's seeds."""
+    the TD3 updates), shared by the program's seeds, and the sequential env steps of its
+    rollout: as many as the seed that played the most."""
     _write_curves(directory, curves, budget, part)
     _write_populations(directory, populations, agent, part)
-    rundir.write_csv(directory / part_file(GENERATION_TIMES, part),
-                     ["generation", "play_s", "learn_s"], times)
+    rundir.write_csv(directory / part_file(GENERATION_TIMES, part), TIMES_COLUMNS, times)
 
 
 def _write_populations(directory: pathlib.Path, populations: list, agent, part: Seeds) -> None:
