@@ -243,15 +243,10 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
         else:
             meta = checkpoints.latest_meta()[1]
             _require_same(directory, meta["settings"], settings, cell.task)
-            if not isinstance(meta["curves"], dict):
+            older = _older_runner(meta, len(population_keys))
+            if older:
                 raise UsageError(f"{checkpoints.directory} was written by an older runner "
-                                 "(μ's curves only); remove it to run the cell again")
-            if (any(len(row) != 1 + len(population_keys) for rows in meta["populations"]
-                    for row in rows)
-                    or any(len(row) != len(TIMES_COLUMNS) for row in meta.get("times", []))):
-                raise UsageError(f"{checkpoints.directory} was written by an older runner "
-                                 "(other per-generation columns); remove it to run the cell "
-                                 "again")
+                                 f"({older}); remove it to run the cell again")
             shapes = loop.placed(loop.state_shapes(agent, keys, eval_keys, seeds=True),
                                  sharding)
             generation, state, meta = checkpoints.restore_latest(shapes)
@@ -492,6 +487,17 @@ def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
         raise UsageError(f"{directory} holds this cell run with other settings; use another "
                          "--out, or remove the folder to run it again. Differences:\n  "
                          + "\n  ".join(differ))
+
+
+def _older_runner(meta: dict, population_columns: int) -> str:
+    """What marks a checkpoint's `meta` as an older runner's (empty if nothing): μ's curves
+    only, or per-generation rows (`_population_metrics`, `TIMES_COLUMNS`) of other widths."""
+    if not isinstance(meta["curves"], dict):
+        return "μ's curves only"
+    if (any(len(row) != 1 + population_columns for rows in meta["populations"] for row in rows)
+            or any(len(row) != len(TIMES_COLUMNS) for row in meta.get("times", []))):
+        return "other per-generation columns"
+    return ""
 
 
 def _population_metrics(agent) -> list[Metric]:
