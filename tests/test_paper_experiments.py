@@ -15,6 +15,7 @@ import jax
 import numpy as np
 import pytest
 
+from benchmarks import lockstep
 from pgps_jax.agent.config import PGPSConfig, for_task
 from pgps_jax.cli.assignments import assignments, env_assignments, field_types
 from pgps_jax.cli.checkpoint import Checkpoints
@@ -143,6 +144,33 @@ def test_a_done_cell_is_not_run_again(uninterrupted):
     again = runner.run_cell(HOPPER, out / "figure4" / "hopper" / "pgps", BUDGET, never)
     assert again == result
     assert (out / "figure4" / "hopper" / "pgps" / runner.RESULT).stat().st_mtime_ns == before
+
+
+def test_the_lockstep_benchmark_sums_the_program_s_and_each_seed_s_rollout_steps(
+        uninterrupted, tmp_path):
+    out, (result,) = uninterrupted
+    cell = out / "figure4" / "hopper" / "pgps"
+    measured = lockstep.lockstep(cell)
+    times = np.loadtxt(cell / runner.GENERATION_TIMES, delimiter=",", skiprows=1, ndmin=2)
+    own = [np.loadtxt(cell / f"seed{seed}_generations.csv", delimiter=",", skiprows=1,
+                      usecols=(1, 3), ndmin=2) for seed in (1, 2)]
+    assert measured["generations"] == result["generations"] == len(times)
+    assert measured["program_rollout_steps"] == times[:, 3].sum()
+    assert [s["rollout_steps"] for s in measured["seeds"]] == [o[:, 1].sum() for o in own]
+    assert [s["env_steps"] for s in measured["seeds"]] == [o[-1, 0] for o in own]
+    assert measured["program_over_longest_seed"] == pytest.approx(
+        times[:, 3].sum() / max(o[:, 1].sum() for o in own), abs=1e-3)
+    assert measured["play_s"] == pytest.approx(times[:, 1].sum(), abs=0.05)
+    # a cell whose files do not record it is refused, naming why
+    older = shutil.copytree(cell, tmp_path / "older")
+    rows = (older / runner.GENERATION_TIMES).read_text().splitlines()
+    (older / runner.GENERATION_TIMES).write_text(
+        "\n".join(",".join(row.split(",")[:3]) for row in rows) + "\n")
+    with pytest.raises(ValueError, match="no rollout_steps column"):
+        lockstep.lockstep(older)
+    (older / runner.GENERATION_TIMES).unlink()
+    with pytest.raises(ValueError, match="in parts"):
+        lockstep.lockstep(older)
 
 
 def test_the_report_alone_writes_the_table_of_final_returns_again(uninterrupted):
