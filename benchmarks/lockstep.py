@@ -11,8 +11,10 @@ rollout steps; the seconds per step of a seed alone are the seeds benchmark's
 
     python -m benchmarks.lockstep benchmarks/results/paper/table1/walker2d/pg_to_ea
 
-Writes one entry per cell to `benchmarks/results/lockstep.json` (an entry of the same cell
-is replaced) and prints a table.
+A cell run in parts, or given more seeds, has a program per part (`--seeds-per-program`):
+each is measured over its own seeds. Writes one entry per program to
+`benchmarks/results/lockstep.json` (an entry of the same program is replaced) and prints a
+table.
 """
 
 import argparse
@@ -22,10 +24,13 @@ import pathlib
 import re
 
 from pgps_jax.cli import run_dir as rundir
-from pgps_jax.experiments.paper.runner import GENERATION_TIMES
+from pgps_jax.experiments.paper.runner import GENERATION_TIMES, PART
 
 RESULTS = pathlib.Path("benchmarks/results/lockstep.json")
 SEED_GENERATIONS = re.compile(r"seed(\d+)_generations\.csv")
+_STEM, _, _EXTENSION = GENERATION_TIMES.partition(".")
+PROGRAM_TIMES = re.compile(rf"{_STEM}(?:{PART}(\d+)-(\d+))?\.{_EXTENSION}")
+"""A program's times: the whole cell's, or a part's of seeds a..b (`runner.part_file`)."""
 
 
 def _rows(path: pathlib.Path) -> list[dict]:
@@ -33,30 +38,49 @@ def _rows(path: pathlib.Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-def lockstep(cell: pathlib.Path) -> dict:
-    """The program's sequential rollout steps against each seed's own, with the seconds the
-    program's generations spent playing and learning (ValueError for a cell whose files do
-    not record them: run in parts, or before `rollout_steps` was recorded)."""
-    times_file = cell / GENERATION_TIMES
-    if not times_file.exists():
-        raise ValueError(f"{cell} has no {GENERATION_TIMES}: not a cell run whole as one "
-                         "program (a cell run in parts has one per part)")
+def programs(cell: pathlib.Path) -> list[tuple[pathlib.Path, list[int]]]:
+    """Each program of `cell`: its times file and its seeds (a part's, from the file's name;
+    the whole cell's program: the seeds no part holds)."""
+    seeds = sorted(int(m.group(1)) for path in cell.iterdir()
+                   if (m := SEED_GENERATIONS.fullmatch(path.name)))
+    found = sorted(((path, m) for path in cell.iterdir()
+                    if (m := PROGRAM_TIMES.fullmatch(path.name))),
+                   key=lambda found: int(found[1].group(1) or 0))  # the whole cell's first
+    parts = {path: list(range(int(m.group(1)), int(m.group(2)) + 1))
+             for path, m in found if m.group(1)}
+    in_parts = {seed for numbers in parts.values() for seed in numbers}
+    return [(path, parts.get(path, [s for s in seeds if s not in in_parts]))
+            for path, _ in found]
+
+
+def lockstep(cell: pathlib.Path) -> list[dict]:
+    """Per program of `cell` (`programs`): its sequential rollout steps against each of its
+    seeds' own, with the seconds its generations spent playing and learning (ValueError for
+    a cell whose files do not record them: no times file, or one written before
+    `rollout_steps` was recorded)."""
+    found = programs(cell)
+    if not found:
+        raise ValueError(f"{cell} has no {GENERATION_TIMES} (nor a part's): not a cell, or "
+                         "one run before the runner recorded its generations' times")
+    return [_program(cell, times_file, seeds) for times_file, seeds in found]
+
+
+def _program(cell: pathlib.Path, times_file: pathlib.Path, numbers: list[int]) -> dict:
     times = _rows(times_file)
     if not times or "rollout_steps" not in times[0]:
         raise ValueError(f"{times_file} has no rollout_steps column: written before the "
                          "runner recorded it")
-    seed_files = sorted((int(m.group(1)), path) for path in cell.iterdir()
-                        if (m := SEED_GENERATIONS.fullmatch(path.name)))
     seeds = []
-    for seed, path in seed_files:
-        played = _rows(path)
+    for seed in numbers:
+        played = _rows(cell / f"seed{seed}_generations.csv")
         seeds.append({"seed": seed, "generations": len(played),
                       "rollout_steps": sum(int(r["rollout_steps"]) for r in played),
                       "env_steps": int(played[-1]["env_steps"]) if played else 0})
     program = sum(int(r["rollout_steps"]) for r in times)
     play = sum(float(r["play_s"]) for r in times)
     longest = max(s["rollout_steps"] for s in seeds)
-    return {"cell": str(cell), "generations": len(times), "play_s": round(play, 1),
+    return {"cell": str(cell), "program": times_file.name, "generations": len(times),
+            "play_s": round(play, 1),
             "learn_s": round(sum(float(r["learn_s"]) for r in times), 1),
             "program_rollout_steps": program, "seeds": seeds,
             "program_over_longest_seed": round(program / longest, 3),
@@ -65,13 +89,14 @@ def lockstep(cell: pathlib.Path) -> dict:
 
 def table(entries: list[dict]) -> str:
     """The entries as a markdown table."""
-    lines = ["| cell | generations | play s | learn s | program's rollout steps | each seed's "
-             "own | program / longest seed | play ms per program step |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| cell | program | generations | play s | learn s | program's rollout steps "
+             "| each seed's own | program / longest seed | play ms per program step |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for e in entries:
         own = " ".join(f"{s['rollout_steps']:,}" for s in e["seeds"])
-        lines.append(f"| {e['cell']} | {e['generations']} | {e['play_s']:,.0f} | "
-                     f"{e['learn_s']:,.0f} | {e['program_rollout_steps']:,} | {own} | "
+        lines.append(f"| {e['cell']} | {e['program']} | {e['generations']} | "
+                     f"{e['play_s']:,.0f} | {e['learn_s']:,.0f} | "
+                     f"{e['program_rollout_steps']:,} | {own} | "
                      f"{e['program_over_longest_seed']:.2f} | "
                      f"{e['play_ms_per_program_step']:.2f} |")
     return "\n".join(lines)
@@ -83,12 +108,12 @@ def main() -> None:
     parser.add_argument("--results", type=pathlib.Path, default=RESULTS)
     args = parser.parse_args()
     try:
-        entries = [lockstep(cell) for cell in args.cells]
+        entries = [entry for cell in args.cells for entry in lockstep(cell)]
     except ValueError as error:
         raise SystemExit(f"error: {error}")
     saved = json.loads(args.results.read_text()) if args.results.exists() else []
-    measured = {e["cell"] for e in entries}
-    saved = [e for e in saved if e["cell"] not in measured] + entries
+    measured = {(e["cell"], e["program"]) for e in entries}
+    saved = [e for e in saved if (e["cell"], e.get("program")) not in measured] + entries
     args.results.parent.mkdir(parents=True, exist_ok=True)
     rundir.write_atomic(args.results, json.dumps(saved, indent=1).encode())
     print(table(entries))

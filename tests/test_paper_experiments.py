@@ -147,13 +147,14 @@ def test_a_done_cell_is_not_run_again(uninterrupted):
 
 
 def test_the_lockstep_benchmark_sums_the_program_s_and_each_seed_s_rollout_steps(
-        uninterrupted, tmp_path):
+        uninterrupted, in_parts, tmp_path):
     out, (result,) = uninterrupted
     cell = out / "figure4" / "hopper" / "pgps"
-    measured = lockstep.lockstep(cell)
+    (measured,) = lockstep.lockstep(cell)
     times = np.loadtxt(cell / runner.GENERATION_TIMES, delimiter=",", skiprows=1, ndmin=2)
     own = [np.loadtxt(cell / f"seed{seed}_generations.csv", delimiter=",", skiprows=1,
                       usecols=(1, 3), ndmin=2) for seed in (1, 2)]
+    assert measured["program"] == runner.GENERATION_TIMES
     assert measured["generations"] == result["generations"] == len(times)
     assert measured["program_rollout_steps"] == times[:, 3].sum()
     assert [s["rollout_steps"] for s in measured["seeds"]] == [o[:, 1].sum() for o in own]
@@ -161,6 +162,20 @@ def test_the_lockstep_benchmark_sums_the_program_s_and_each_seed_s_rollout_steps
     assert measured["program_over_longest_seed"] == pytest.approx(
         times[:, 3].sum() / max(o[:, 1].sum() for o in own), abs=1e-3)
     assert measured["play_s"] == pytest.approx(times[:, 1].sum(), abs=0.05)
+    # a program of one seed waits on no other: it plays its seed's own steps
+    parts = lockstep.lockstep(in_parts[0] / "figure4" / "hopper" / "pgps")
+    assert [(p["program"], [s["seed"] for s in p["seeds"]]) for p in parts] == [
+        ("generation_times_seeds1-1.csv", [1]), ("generation_times_seeds2-2.csv", [2])]
+    assert all(p["program_over_longest_seed"] == 1 for p in parts)
+    # a cell given more seeds: the whole cell's program holds the seeds no part holds
+    given = tmp_path / "given"
+    given.mkdir()
+    for name in [f"seed{k}_generations.csv" for k in range(1, 11)] + [
+            runner.GENERATION_TIMES, "generation_times_seeds6-10.csv"]:
+        (given / name).touch()
+    assert [(path.name, seeds) for path, seeds in lockstep.programs(given)] == [
+        (runner.GENERATION_TIMES, [1, 2, 3, 4, 5]),
+        ("generation_times_seeds6-10.csv", [6, 7, 8, 9, 10])]
     # a cell whose files do not record it is refused, naming why
     older = shutil.copytree(cell, tmp_path / "older")
     rows = (older / runner.GENERATION_TIMES).read_text().splitlines()
@@ -169,7 +184,7 @@ def test_the_lockstep_benchmark_sums_the_program_s_and_each_seed_s_rollout_steps
     with pytest.raises(ValueError, match="no rollout_steps column"):
         lockstep.lockstep(older)
     (older / runner.GENERATION_TIMES).unlink()
-    with pytest.raises(ValueError, match="in parts"):
+    with pytest.raises(ValueError, match="has no generation_times.csv"):
         lockstep.lockstep(older)
 
 
