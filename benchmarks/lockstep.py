@@ -9,7 +9,8 @@ as programs of their own (`--seeds-per-program 1`, each on a GPU of its own) can
 rollout steps; the seconds per step of a seed alone are the seeds benchmark's
 (`benchmarks.grid_throughput seeds`).
 
-    python -m benchmarks.lockstep benchmarks/results/paper/table1/walker2d/pg_to_ea
+    python -m benchmarks.lockstep \
+        benchmarks/results/cut_off_2026-11-27/table1_walker2d_one_gpu_each/base
 
 A cell run in parts, or given more seeds, has a program per part (`--seeds-per-program`):
 each is measured over its own seeds. Writes one entry per program to
@@ -58,6 +59,9 @@ def lockstep(cell: pathlib.Path) -> list[dict]:
     seeds' own, with the seconds its generations spent playing and learning (ValueError for
     a cell whose files do not record them: no times file, or one written before
     `rollout_steps` was recorded)."""
+    if not cell.is_dir():
+        raise ValueError(f"{cell} is not a directory: give a cell's folder, "
+                         "<out>/<experiment>/<task>/<config>")
     found = programs(cell)
     if not found:
         raise ValueError(f"{cell} has no {GENERATION_TIMES} (nor a part's): not a cell, or "
@@ -70,6 +74,11 @@ def _program(cell: pathlib.Path, times_file: pathlib.Path, numbers: list[int]) -
     if not times or "rollout_steps" not in times[0]:
         raise ValueError(f"{times_file} has no rollout_steps column: written before the "
                          "runner recorded it")
+    missing = [f"seed{seed}_generations.csv" for seed in numbers
+               if not (cell / f"seed{seed}_generations.csv").exists()]
+    if not numbers or missing:
+        raise ValueError(f"{cell}: the seeds' generations files of {times_file.name} are "
+                         f"missing ({', '.join(missing) or 'no seed has one'})")
     seeds = []
     for seed in numbers:
         played = _rows(cell / f"seed{seed}_generations.csv")

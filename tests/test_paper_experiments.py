@@ -177,6 +177,10 @@ def test_the_lockstep_benchmark_sums_the_program_s_and_each_seed_s_rollout_steps
         (runner.GENERATION_TIMES, [1, 2, 3, 4, 5]),
         ("generation_times_seeds6-10.csv", [6, 7, 8, 9, 10])]
     # a cell whose files do not record it is refused, naming why
+    lost = shutil.copytree(in_parts[0] / "figure4" / "hopper" / "pgps", tmp_path / "lost")
+    (lost / "seed2_generations.csv").unlink()  # a part's seeds are in its times file's name
+    with pytest.raises(ValueError, match="missing .seed2_generations.csv"):
+        lockstep.lockstep(lost)
     older = shutil.copytree(cell, tmp_path / "older")
     rows = (older / runner.GENERATION_TIMES).read_text().splitlines()
     (older / runner.GENERATION_TIMES).write_text(
@@ -186,6 +190,8 @@ def test_the_lockstep_benchmark_sums_the_program_s_and_each_seed_s_rollout_steps
     (older / runner.GENERATION_TIMES).unlink()
     with pytest.raises(ValueError, match="has no generation_times.csv"):
         lockstep.lockstep(older)
+    with pytest.raises(ValueError, match="not a directory"):
+        lockstep.lockstep(tmp_path / "absent")
 
 
 def test_the_report_alone_writes_the_table_of_final_returns_again(uninterrupted):
