@@ -25,7 +25,7 @@ import pathlib
 import re
 
 from pgps_jax.cli import run_dir as rundir
-from pgps_jax.experiments.paper.runner import GENERATION_TIMES, PART
+from pgps_jax.experiments.paper.runner import GENERATION_TIMES, PART, generations_file
 
 RESULTS = pathlib.Path("benchmarks/results/lockstep.json")
 SEED_GENERATIONS = re.compile(r"seed(\d+)_generations\.csv")
@@ -74,14 +74,14 @@ def _program(cell: pathlib.Path, times_file: pathlib.Path, numbers: list[int]) -
     if not times or "rollout_steps" not in times[0]:
         raise ValueError(f"{times_file} has no rollout_steps column: written before the "
                          "runner recorded it")
-    missing = [f"seed{seed}_generations.csv" for seed in numbers
-               if not (cell / f"seed{seed}_generations.csv").exists()]
-    if not numbers or missing:
+    files = {seed: cell / generations_file(seed) for seed in numbers}
+    missing = [path.name for path in files.values() if not path.exists()]
+    if not files or missing:
         raise ValueError(f"{cell}: the seeds' generations files of {times_file.name} are "
                          f"missing ({', '.join(missing) or 'no seed has one'})")
     seeds = []
-    for seed in numbers:
-        played = _rows(cell / f"seed{seed}_generations.csv")
+    for seed, path in files.items():
+        played = _rows(path)
         seeds.append({"seed": seed, "generations": len(played),
                       "rollout_steps": sum(int(r["rollout_steps"]) for r in played),
                       "env_steps": int(played[-1]["env_steps"]) if played else 0})

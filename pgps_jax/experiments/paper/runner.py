@@ -162,6 +162,11 @@ def seed_file(seed: int, actor: str = "") -> str:
     return f"seed{seed}_{actor}.csv" if actor else f"seed{seed}.csv"
 
 
+def generations_file(seed: int) -> str:
+    """Seed `seed`'s per-generation metrics (`_population_metrics`)."""
+    return f"seed{seed}_generations.csv"
+
+
 def seed_mesh() -> jax.sharding.Mesh:
     """A one-axis mesh (`seeds`) over every visible device."""
     return jax.make_mesh((len(jax.devices()),), ("seeds",),
@@ -533,7 +538,7 @@ def _write_populations(directory: pathlib.Path, populations: list, agent, part: 
     """seed<k>_generations.csv of every seed of the part (`_population_metrics`)."""
     header = ["generation"] + [m.column for m in _population_metrics(agent)]
     for seed, rows in zip(part.numbers, populations):
-        rundir.write_csv(directory / f"seed{seed}_generations.csv", header, rows)
+        rundir.write_csv(directory / generations_file(seed), header, rows)
 
 
 def _add_evaluation(curves: dict, metrics: dict, seed: int, step: int) -> None:
