@@ -9,10 +9,14 @@ relative to the fewest seeds measured (by default one alone: 1.0; S seeds for th
 `grid`: the Figure-4 PGPS cells through `python -m pgps_jax.experiments.paper figure4
 --configs pgps --concurrent K` (K cells at a time in processes of their own, placed on the
 visible GPUs in turn; CUDA's MPS daemon is recorded as running or not), timed from the
-command's start to its end, with each cell's own wall-clock from its `result.json`.
+command's start to its end, with each cell's own wall-clock from its `result.json` (a cell
+run in parts, `--seeds-per-program S`, sums its parts': each part is then a process of its
+own, and K counts parts).
 
     python -m benchmarks.grid_throughput seeds --tasks halfcheetah hopper --seeds 1 5 10 25 50
     python -m benchmarks.grid_throughput grid --concurrent 5 --out runs/grid
+    python -m benchmarks.grid_throughput grid --tasks walker2d hopper --seeds-per-program 1 \
+        --concurrent 10 --out runs/grid_parts
     python -m benchmarks.grid_throughput seeds --smoke    # tiny sizes: a CPU check of the script
 
 Entries are appended to `benchmarks/results/grid_throughput.json` after each measurement (a
@@ -26,7 +30,7 @@ import pathlib
 import subprocess
 import sys
 import time
-from typing import Iterator
+from typing import Iterator, Optional
 
 import jax
 import jax.numpy as jnp
@@ -86,15 +90,18 @@ def mps_running() -> bool:
 
 
 def grid(tasks: list[str], concurrent: int, out: pathlib.Path, steps: int, seeds: int,
-         smoke: bool, environ: dict) -> dict:
-    """The Figure-4 PGPS cells of `tasks`, `concurrent` at a time, into `out` (which must not
-    hold them yet: a done cell would not run again, a cut-off one would continue)."""
+         smoke: bool, environ: dict, seeds_per_program: Optional[int] = None) -> dict:
+    """The Figure-4 PGPS cells of `tasks`, `concurrent` programs at a time (cells, or parts of
+    `seeds_per_program` seeds), into `out` (which must not hold them yet: a done cell would
+    not run again, a cut-off one would continue)."""
     held = [t for t in tasks if (out / "figure4" / t / "pgps").exists()]
     if held:
         sys.exit(f"{out} already holds cells of {', '.join(held)}: use another --out")
     command = [sys.executable, "-m", "pgps_jax.experiments.paper", "figure4", "--configs",
                "pgps", "--tasks", *tasks, "--concurrent", str(concurrent), "--steps",
                str(steps), "--seeds", str(seeds), "--out", str(out), "--no-progress"]
+    if seeds_per_program is not None:
+        command += ["--seeds-per-program", str(seeds_per_program)]
     if smoke:
         command += ["--set", *(f"{k}={list(v) if isinstance(v, tuple) else v}"
                                for k, v in SMOKE.items()),
@@ -106,10 +113,12 @@ def grid(tasks: list[str], concurrent: int, out: pathlib.Path, steps: int, seeds
     for task in tasks:
         result = json.loads((out / "figure4" / task / "pgps" / "result.json").read_text())
         cells.append({"task": task, "wall_s": result["wall_s"], "device": result["device"],
-                      "final_mu": result["final"]["mu"]})
+                      "final_mu": result["final"]["mu"],
+                      "parts_wall_s": [part["wall_s"] for part in result.get("parts", [])]})
     return {"kind": "grid", "tasks": tasks, "concurrent": concurrent, "steps": steps,
-            "seeds": seeds, "gpus": jax.local_device_count(), "mps": mps_running(),
-            "wall_s": wall, "cells": cells}
+            "seeds": seeds, "seeds_per_program": seeds_per_program or seeds,
+            "gpus": jax.local_device_count(), "mps": mps_running(), "wall_s": wall,
+            "cells": cells}
 
 
 def main() -> None:
@@ -119,7 +128,10 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="*", type=int, default=[1, 5, 10, 25, 50],
                         help="seeds: the seed counts measured")
     parser.add_argument("--grid-seeds", type=int, default=5, help="grid: each cell's seeds")
-    parser.add_argument("--concurrent", type=int, default=5)
+    parser.add_argument("--concurrent", type=int, default=5,
+                        help="grid: programs at a time (cells, or parts with --seeds-per-program)")
+    parser.add_argument("--seeds-per-program", type=int, default=None, metavar="S",
+                        help="grid: each cell's seeds S to a program (default: all in one)")
     parser.add_argument("--steps", type=int, default=1_000_000, help="grid: each cell's budget")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/grid"))
     parser.add_argument("--results", help=f"default: {RESULTS}; with --smoke, the same name in a "
@@ -147,7 +159,7 @@ def main() -> None:
                 record(entry, replacing_last=measured > 0)
     else:
         record(grid(args.tasks, args.concurrent, args.out, args.steps if not args.smoke else 600,
-                    args.grid_seeds, args.smoke, environ))
+                    args.grid_seeds, args.smoke, environ, args.seeds_per_program))
 
 
 if __name__ == "__main__":

@@ -546,6 +546,33 @@ def test_cells_side_by_side_compute_what_they_compute_in_turn(in_parts, tmp_path
                     == (out / "figure4" / "hopper" / "pgps" / name).read_bytes())
 
 
+def test_the_grid_benchmark_times_a_cell_run_in_parts(in_parts, tmp_path, cache):
+    """`benchmarks.grid_throughput grid --seeds-per-program 1`: the cell's two seeds run as two
+    programs side by side, which compute what the in-turn parts compute; the entry records
+    the split and each part's wall-clock, the cell's the sum of its parts'."""
+    out, result = in_parts
+    results = tmp_path / "grid_throughput.json"
+    run = subprocess.run(
+        [sys.executable, "-m", "benchmarks.grid_throughput", "grid", "--smoke", "--tasks",
+         "hopper", "--grid-seeds", "2", "--seeds-per-program", "1", "--concurrent", "2",
+         "--out", str(tmp_path / "grid"), "--results", str(results)],
+        cwd=REPO, env={**cli_env(cache), "JAX_PLATFORMS": os.environ.get("JAX_PLATFORMS", "")},
+        capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    [entry] = json.loads(results.read_text())
+    assert (entry["kind"], entry["seeds"], entry["seeds_per_program"], entry["concurrent"]) == (
+        "grid", 2, 1, 2)
+    [cell] = entry["cells"]
+    assert len(cell["parts_wall_s"]) == 2 and min(cell["parts_wall_s"]) > 0
+    assert cell["wall_s"] == pytest.approx(sum(cell["parts_wall_s"]))
+    timed = json.loads((tmp_path / "grid" / "figure4" / "hopper" / "pgps" / runner.RESULT)
+                       .read_text())
+    assert [p["seeds"] for p in timed["parts"]] == [[1], [2]]
+    if jax.device_count() == 1 and jax.default_backend() == "cpu":
+        assert (timed["final"], timed["env_steps"]) == (result["final"], result["env_steps"])
+        assert cell["final_mu"] == result["final"]["mu"]
+
+
 def test_importing_the_commands_starts_no_jax_backend():
     """The side-by-side command's own process leaves the GPUs' memory to its cells: nothing
     it imports makes a device array (a GPU backend, once started, preallocates its memory)."""
