@@ -28,7 +28,9 @@ from pgps_jax.cli import run_dir as rundir
 from pgps_jax.experiments.paper.runner import GENERATION_TIMES, PART, generations_file
 
 RESULTS = pathlib.Path("benchmarks/results/lockstep.json")
-SEED_GENERATIONS = re.compile(r"seed(\d+)_generations\.csv")
+_BEFORE_SEED, _, _AFTER_SEED = generations_file(0).partition("0")
+SEED_GENERATIONS = re.compile(rf"{re.escape(_BEFORE_SEED)}(\d+){re.escape(_AFTER_SEED)}")
+"""A seed's generations file (`runner.generations_file`), its seed captured."""
 _STEM, _, _EXTENSION = GENERATION_TIMES.partition(".")
 PROGRAM_TIMES = re.compile(rf"{_STEM}(?:{PART}(\d+)-(\d+))?\.{_EXTENSION}")
 """A program's times: the whole cell's, or a part's of seeds a..b (`runner.part_file`)."""

@@ -515,6 +515,12 @@ def test_a_part_whose_checkpoint_was_lost_runs_again_from_its_start(in_parts, tm
     assert json.loads((cell / runner.RESULT).read_text())["seeds"] == [1, 2]  # merged
 
 
+def _same_platform(cache: pathlib.Path) -> dict:
+    """A child command's environment: a CLI subprocess's (`cli_env`) on this test's platform,
+    so that its cells compute what this process's in-turn cells computed."""
+    return {**cli_env(cache), "JAX_PLATFORMS": os.environ.get("JAX_PLATFORMS", "")}
+
+
 def test_cells_side_by_side_compute_what_they_compute_in_turn(in_parts, tmp_path, cache):
     """Programs in processes of their own, two at a time (the two parts of one cell, then a
     cell that fails): the parts give the results of the in-turn run, byte for byte, its
@@ -524,11 +530,10 @@ def test_cells_side_by_side_compute_what_they_compute_in_turn(in_parts, tmp_path
     refused.mkdir(parents=True)
     (refused / runner.RESULT).write_bytes(  # a result of another cell
         (out / "figure4" / "hopper" / "pgps" / runner.RESULT).read_bytes())
-    same_platform = {**cli_env(cache), "JAX_PLATFORMS": os.environ.get("JAX_PLATFORMS", "")}
     with pytest.raises(RunFailed, match=r"1 of 3 program\(s\) failed: hopper cemrl: .* other "
                                         "settings"):
         command.run("figure4", tmp_path, IN_PARTS, tasks=["hopper"], configs=["pgps", "cemrl"],
-                    progress=False, concurrent=2, child_environ=same_platform)
+                    progress=False, concurrent=2, child_environ=_same_platform(cache))
     _, rows = read_csv(tmp_path / "figure4" / command.FINAL_RETURNS)  # written all the same
     assert [(r["config"], r["seed"]) for r in rows] == [("pgps", "1"), ("pgps", "2")] * 2
     cell = tmp_path / "figure4" / "hopper" / "pgps"
@@ -556,8 +561,7 @@ def test_the_grid_benchmark_times_a_cell_run_in_parts(in_parts, tmp_path, cache)
         [sys.executable, "-m", "benchmarks.grid_throughput", "grid", "--smoke", "--tasks",
          "hopper", "--grid-seeds", "2", "--seeds-per-program", "1", "--concurrent", "2",
          "--out", str(tmp_path / "grid"), "--results", str(results)],
-        cwd=REPO, env={**cli_env(cache), "JAX_PLATFORMS": os.environ.get("JAX_PLATFORMS", "")},
-        capture_output=True, text=True, timeout=600)
+        cwd=REPO, env=_same_platform(cache), capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
     [entry] = json.loads(results.read_text())
     assert (entry["kind"], entry["seeds"], entry["seeds_per_program"], entry["concurrent"]) == (
