@@ -1,5 +1,6 @@
 """Timing of jitted functions and the provenance of a measurement, shared by the benchmarks."""
 
+import os
 import pathlib
 import subprocess
 import tempfile
@@ -45,8 +46,8 @@ def results_path(given: Optional[str], default: str, smoke: bool) -> pathlib.Pat
 
 
 def provenance() -> dict:
-    """The device kind, JAX version and commit a measurement is taken with (the commit
-    followed by "+changes" where the package or the benchmarks differ from it)."""
+    """The device kind, JAX version, commit and `XLA_FLAGS` a measurement is taken with (the
+    commit followed by "+changes" where the package or the benchmarks differ from it)."""
     root = pathlib.Path(__file__).resolve().parents[1]
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True, cwd=root).stdout.strip()
@@ -56,4 +57,5 @@ def provenance() -> dict:
              for entry in status.split("\0") if entry]
     if commit and any(not path.startswith("benchmarks/results/") for path in paths):
         commit += "+changes"
-    return {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit}
+    return {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit,
+            "xla_flags": os.environ.get("XLA_FLAGS", "")}

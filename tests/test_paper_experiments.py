@@ -554,16 +554,21 @@ def test_cells_side_by_side_compute_what_they_compute_in_turn(in_parts, tmp_path
 def test_the_grid_benchmark_times_a_cell_run_in_parts(in_parts, tmp_path, cache):
     """`benchmarks.grid_throughput grid --seeds-per-program 1`: the cell's two seeds run as two
     programs side by side, which compute what the in-turn parts compute; the entry records
-    the split and each part's wall-clock, the cell's the sum of its parts'."""
+    the split, each part's wall-clock, the cell's the sum of its parts', and the XLA flags it
+    ran under."""
     out, result = in_parts
     results = tmp_path / "grid_throughput.json"
+    env = _same_platform(cache)
+    # a GPU option beside the platform's own flags: a CPU run ignores it
+    flags = f"{env.get('XLA_FLAGS', '')} --xla_gpu_autotune_level=0".strip()
     run = subprocess.run(
         [sys.executable, "-m", "benchmarks.grid_throughput", "grid", "--smoke", "--tasks",
          "hopper", "--grid-seeds", "2", "--seeds-per-program", "1", "--concurrent", "2",
          "--out", str(tmp_path / "grid"), "--results", str(results)],
-        cwd=REPO, env=_same_platform(cache), capture_output=True, text=True, timeout=600)
+        cwd=REPO, env={**env, "XLA_FLAGS": flags}, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
     [entry] = json.loads(results.read_text())
+    assert entry["xla_flags"] == flags
     assert (entry["kind"], entry["seeds"], entry["seeds_per_program"], entry["concurrent"]) == (
         "grid", 2, 1, 2)
     [cell] = entry["cells"]
