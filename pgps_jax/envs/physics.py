@@ -21,6 +21,7 @@ from mujoco import mjx
 import numpy as np
 
 from pgps_jax.envs import mjx_rewrites
+from pgps_jax.envs.mjx_rewrites import fused_solve
 from pgps_jax.envs.mjx_rewrites import small_linalg
 
 _ASSETS = epath.resource_path(brax.__name__) / "envs/assets"
@@ -43,7 +44,7 @@ that Brax added), or Gym's: every body geom with a 0.01 m contact margin, the ad
 removed."""
 
 
-SPEED_ONLY = ("write_out_linalg", "unroll_line_search", "unroll_solver")
+SPEED_ONLY = ("write_out_linalg", "unroll_line_search", "unroll_solver", "fused_solve")
 """The `Physics` fields that change how a physics step is computed, not what (its results
 stay equal to float tolerance)."""
 
@@ -74,6 +75,9 @@ class Physics:
     unroll_solver: Optional[bool] = None
     """The solver's iterations, when there are several, without a device loop
     (`mjx_rewrites`); None: on a GPU."""
+    fused_solve: bool = False
+    """The Newton solve as one kernel per env (`mjx_rewrites.fused_solve`; interpreted on a
+    CPU). Off by default: not yet timed on a GPU."""
     impl: str = "jax"
     """One of `IMPLS`. Warp's solver is MuJoCo's, not MJX's JAX one: solved to convergence
     the two agree, with a truncated solve their states differ beyond float tolerance. The
@@ -130,7 +134,15 @@ def load_model(xml: str, physics: Physics) -> tuple[mujoco.MjModel, mjx.Model]:
     else:
         model.opt.disableflags |= eulerdamp
     if physics.impl != "warp":
-        return model, mjx.put_model(model, impl="jax")
+        jax_model = mjx.put_model(model, impl="jax")
+        reason = physics.fused_solve and fused_solve.unsupported(jax_model)
+        if reason:
+            raise ValueError(f"fused_solve covers Newton's method with pyramidal cones and no "
+                             f"friction loss; here {reason}: set fused_solve=false")
+        return model, jax_model
+    if physics.fused_solve:
+        raise ValueError("fused_solve replaces MJX's JAX solver, not Warp's: with impl=warp "
+                         "set fused_solve=false")
     _require_warp()
     warp_model = mjx.put_model(model, impl="warp")
     return model, warp_model.tree_replace({"opt._impl.warn_overflow": _warp_overflows_warned(
@@ -222,12 +234,12 @@ def default_platform() -> str:
 def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
                 write_out_linalg: Optional[bool] = None,
                 unroll_line_search: Optional[bool] = None,
-                unroll_solver: Optional[bool] = None) -> mjx.Data:
+                unroll_solver: Optional[bool] = None, fused_solve: bool = False) -> mjx.Data:
     """Advances `data` by `n_frames` physics steps with its control held fixed.
 
-    `write_out_linalg`, `unroll_line_search` and `unroll_solver` switch the rewrites of
-    `mjx_rewrites` on or off; None gives `Physics`'s defaults for `default_platform()` (on an
-    H200: halfcheetah's physics per env step at batch 40 takes 1.05 ms with the first two
+    `write_out_linalg`, `unroll_line_search`, `unroll_solver` and `fused_solve` switch the
+    rewrites of `mjx_rewrites` on or off; None gives `Physics`'s defaults for
+    `default_platform()` (on an H200: halfcheetah's physics per env step at batch 40 takes 1.05 ms with the first two
     instead of 1.33; the ant's env step at batch 60 7.56 ms with its solver's iterations
     written out instead of 10.69).
 
@@ -243,12 +255,13 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
         step = functools.partial(mjx.step, model)
     else:
         step = _rewritten_step(model, on_gpu, write_out_linalg, unroll_line_search,
-                               unroll_solver)
+                               unroll_solver, fused_solve)
     return jax.lax.fori_loop(0, n_frames, lambda _, d: step(d), data, unroll=on_gpu)
 
 
 def _rewritten_step(model: mjx.Model, on_gpu: bool, write_out_linalg: Optional[bool],
-                    unroll_line_search: Optional[bool], unroll_solver: Optional[bool]):
+                    unroll_line_search: Optional[bool], unroll_solver: Optional[bool],
+                    fused_solve: bool):
     """MJX's JAX physics step with the `mjx_rewrites` switched on or off (None: `Physics`'s
     defaults for the platform)."""
     if write_out_linalg is None:
@@ -258,4 +271,4 @@ def _rewritten_step(model: mjx.Model, on_gpu: bool, write_out_linalg: Optional[b
     if unroll_solver is None:
         unroll_solver = on_gpu
     return mjx_rewrites.physics_step(model, write_out_linalg, unroll_line_search,
-                                     unroll_solver)
+                                     unroll_solver, fused_solve, on_gpu)

@@ -7,6 +7,9 @@
   (`Physics.unroll_line_search`).
 - `solver_loop`: the solver's iterations, when there are several, without a device loop
   (`Physics.unroll_solver`).
+- `fused_solve`: the whole constraint solve as one kernel per env (`Physics.fused_solve`,
+  off by default; with it the two rules above have nothing left to rewrite and are not
+  applied).
 
 All three default to on for a GPU (the written-out linear algebra for models of up to
 `small_linalg.MAX_SIZE` degrees of freedom) and off for a CPU, where the library calls are
@@ -22,6 +25,7 @@ from typing import Callable
 
 from mujoco import mjx
 
+from pgps_jax.envs.mjx_rewrites import fused_solve as fused
 from pgps_jax.envs.mjx_rewrites.line_search import unrolled_line_search
 from pgps_jax.envs.mjx_rewrites.rewrite import rewrite
 from pgps_jax.envs.mjx_rewrites.small_linalg import SMALL_LINALG
@@ -32,17 +36,24 @@ WRITTEN_FOR = {"mujoco-mjx": "3.17.0", "jax": "0.10.2"}
 
 
 def physics_step(model: mjx.Model, write_out_linalg: bool, unroll_line_search: bool,
-                 unroll_solver: bool) -> Callable[[mjx.Data], mjx.Data]:
-    """`mjx.step` of `model`, with the rewrites that are switched on."""
+                 unroll_solver: bool, fused_solve: bool = False,
+                 on_gpu: bool = True) -> Callable[[mjx.Data], mjx.Data]:
+    """`mjx.step` of `model`, with the rewrites that are switched on (the fused solve, for a
+    model that `fused_solve.unsupported` accepts, interpreted unless `on_gpu`)."""
     rules = []
     if write_out_linalg:
         rules.append(SMALL_LINALG)
-    if unroll_line_search:
-        rules.append(unrolled_line_search(int(model.opt.ls_iterations)))
-    if unroll_solver and model.opt.iterations > 1:
-        rules.append(unrolled_solver(int(model.opt.iterations), int(model.opt.ls_iterations)))
+    if not fused_solve:
+        if unroll_line_search:
+            rules.append(unrolled_line_search(int(model.opt.ls_iterations)))
+        if unroll_solver and model.opt.iterations > 1:
+            rules.append(unrolled_solver(int(model.opt.iterations),
+                                         int(model.opt.ls_iterations)))
 
     def step(data: mjx.Data) -> mjx.Data:
-        return mjx.step(model, data)
+        if not fused_solve:
+            return mjx.step(model, data)
+        with fused.solve_replaced(interpret=not on_gpu):
+            return mjx.step(model, data)
 
     return rewrite(step, rules) if rules else step
