@@ -76,8 +76,8 @@ class Physics:
     """The solver's iterations, when there are several, without a device loop
     (`mjx_rewrites`); None: on a GPU."""
     fused_solve: bool = False
-    """The Newton solve as one kernel per env (`mjx_rewrites.fused_solve`; interpreted on a
-    CPU). Off by default: not yet timed on a GPU."""
+    """The Newton solve as one kernel per env (`mjx_rewrites.fused_solve`; interpreted off a
+    GPU). Off by default: not yet timed on a GPU."""
     impl: str = "jax"
     """One of `IMPLS`. Warp's solver is MuJoCo's, not MJX's JAX one: solved to convergence
     the two agree, with a truncated solve their states differ beyond float tolerance. The
@@ -135,10 +135,8 @@ def load_model(xml: str, physics: Physics) -> tuple[mujoco.MjModel, mjx.Model]:
         model.opt.disableflags |= eulerdamp
     if physics.impl != "warp":
         jax_model = mjx.put_model(model, impl="jax")
-        reason = physics.fused_solve and fused_solve.unsupported(jax_model)
-        if reason:
-            raise ValueError(f"fused_solve covers Newton's method with pyramidal cones and no "
-                             f"friction loss; here {reason}: set fused_solve=false")
+        if physics.fused_solve:
+            fused_solve.refuse_unsupported(jax_model)
         return model, jax_model
     if physics.fused_solve:
         raise ValueError("fused_solve replaces MJX's JAX solver, not Warp's: with impl=warp "

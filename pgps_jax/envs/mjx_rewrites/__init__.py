@@ -11,7 +11,7 @@
   off by default; with it the two rules above have nothing left to rewrite and are not
   applied).
 
-All three default to on for a GPU (the written-out linear algebra for models of up to
+The first three default to on for a GPU (the written-out linear algebra for models of up to
 `small_linalg.MAX_SIZE` degrees of freedom) and off for a CPU, where the library calls are
 faster and a loop's trip costs no pause for the host. On an H200, halfcheetah's physics at
 batch 40 takes 1.05 ms per env step with the first two instead of 1.33, and the ant's env step
@@ -36,14 +36,16 @@ WRITTEN_FOR = {"mujoco-mjx": "3.17.0", "jax": "0.10.2"}
 
 
 def physics_step(model: mjx.Model, write_out_linalg: bool, unroll_line_search: bool,
-                 unroll_solver: bool, fused_solve: bool = False,
-                 on_gpu: bool = True) -> Callable[[mjx.Data], mjx.Data]:
-    """`mjx.step` of `model`, with the rewrites that are switched on (the fused solve, for a
-    model that `fused_solve.unsupported` accepts, interpreted unless `on_gpu`)."""
+                 unroll_solver: bool, fused_solve: bool,
+                 on_gpu: bool) -> Callable[[mjx.Data], mjx.Data]:
+    """`mjx.step` of `model`, with the rewrites that are switched on (the fused solve's kernel
+    interpreted unless `on_gpu`). ValueError if the fused solve does not cover `model`."""
     rules = []
     if write_out_linalg:
         rules.append(SMALL_LINALG)
-    if not fused_solve:
+    if fused_solve:
+        fused.refuse_unsupported(model)
+    else:
         if unroll_line_search:
             rules.append(unrolled_line_search(int(model.opt.ls_iterations)))
         if unroll_solver and model.opt.iterations > 1:

@@ -1,21 +1,22 @@
 """MJX's Newton constraint solve as one kernel per env (`Physics.fused_solve`).
 
 On a GPU MJX's solve is a chain of small kernels, about 105 per solve for the ant (three
-iterations of two line-search steps; 58 % of its env step, BENCHMARKS.md "Where the ant's
-step goes on the GPU"), each a few microseconds whatever the batch. `solve` computes the same
+iterations of two line-search steps: half of the device time of its env step, BENCHMARKS.md
+"Where the ant's step goes on the GPU"), each a few microseconds whatever the batch. `solve` computes the same
 thing for each env as one Pallas (Triton) program over zero-padded tiles: the warm start's
 choice, the Gauss and constraint costs, the Hessian M + Jᵀ·diag(D·active)·J and its Cholesky
-factor, MJX's bracketing line search, the stopping tests, in MJX's order of operations, so
-that its results agree with MJX's to float tolerance. It covers Newton's method with
-pyramidal cones and no friction loss (`unsupported` names what else a model asks); on a CPU
-the program runs interpreted, for the tests. Whether the kernel is faster on a GPU is not yet
-measured, so it is off by default.
+factor (its own, in masked tile updates), MJX's bracketing line search and stopping tests,
+so that its results agree with MJX's to float tolerance. It covers Newton's method with
+pyramidal cones and no friction loss (`refuse_unsupported`); off a GPU the program runs
+interpreted, for the tests. Whether the kernel is faster on a GPU is not yet measured, so it
+is off by default.
 
-`solve_replaced()` makes `mjx.step` call `solve` while it is traced.
+`solve_replaced()` makes `mjx.step` call `solve` while it is traced in the calling thread.
 """
 
 import contextlib
 import functools
+import threading
 from typing import Optional
 
 import jax
@@ -31,7 +32,7 @@ import numpy as np
 _WARMSTART_OFF = int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
 
 
-def unsupported(model: mjx.Model) -> Optional[str]:
+def _unsupported(model: mjx.Model) -> Optional[str]:
     """Why `solve` cannot stand in for MJX's on `model`, or None."""
     if model.opt.solver != mujoco.mjtSolver.mjSOL_NEWTON:
         return "the solver is not Newton's"
@@ -40,6 +41,14 @@ def unsupported(model: mjx.Model) -> Optional[str]:
     if model._impl.dof_hasfrictionloss.any() or model._impl.tendon_hasfrictionloss.any():
         return "the model has friction loss"
     return None
+
+
+def refuse_unsupported(model: mjx.Model) -> None:
+    """ValueError naming why `solve` cannot stand in for MJX's on `model`, if it cannot."""
+    reason = _unsupported(model)
+    if reason:
+        raise ValueError(f"fused_solve covers Newton's method with pyramidal cones and no "
+                         f"friction loss; here {reason}: set fused_solve=false")
 
 
 def _padded(n: int) -> int:
@@ -95,6 +104,8 @@ def solve_tiles(jac, efc_d, aref, always, mass, qfrc_smooth, qacc_smooth, qacc_w
     trace = jnp.maximum(mujoco.mjMINVAL,
                         jnp.sum(jnp.where((rows == cols) & (rows < nv), mass, 0.0)))
     dot = lambda a, b: jnp.sum(a * b)
+    # MJX's math.norm: 0 where every component is within 1e-8 of it (jnp.allclose)
+    norm = lambda v: jnp.where(jnp.max(jnp.abs(v)) <= 1e-8, 0.0, jnp.sqrt(dot(v, v)))
     mul_m = lambda v: jnp.sum(mass * v[None, :], axis=1)
     mul_j = lambda v: jnp.sum(jac * v[None, :], axis=1)
 
@@ -118,7 +129,7 @@ def solve_tiles(jac, efc_d, aref, always, mass, qfrc_smooth, qacc_smooth, qacc_w
                 2 * q2 + (q2 == 0) * mujoco.mjMINVAL)
 
     def line_search(qacc, jaref, ma, search, gauss):  # MJX's _linesearch
-        gtol = tolerance * ls_tolerance * jnp.sqrt(dot(search, search)) * trace
+        gtol = tolerance * ls_tolerance * norm(search) * trace
         mv, jv = mul_m(search), mul_j(search)
         gauss_quad = (gauss, dot(search, ma) - dot(search, qfrc_smooth), 0.5 * dot(search, mv))
         quads = (0.5 * jaref * jaref * efc_d, jv * jaref * efc_d, 0.5 * jv * jv * efc_d)
@@ -186,7 +197,7 @@ def solve_tiles(jac, efc_d, aref, always, mass, qfrc_smooth, qacc_smooth, qacc_w
         for _ in range(iterations):
             cost, prev_cost, grad = state[5:8]
             improvement = (prev_cost - cost) / trace
-            steep = jnp.sqrt(dot(grad, grad)) / trace
+            steep = norm(grad) / trace
             more = ~((improvement < tolerance) | (steep < tolerance))
             going = more if going is None else going & more
             state = tuple(jnp.where(going, new, old)
@@ -227,18 +238,36 @@ def solve(m: mjx.Model, d: mjx.Data, interpret: bool) -> mjx.Data:
                            "_impl.efc_force": efc_force[:nefc]})
 
 
+_replacing = threading.local()
+"""Per thread: whether `solve_replaced` is open in it, and whether interpreted."""
+
+
+def _solve_of_this_thread(original):
+    """MJX's solve, or `solve` in a thread where `solve_replaced` is open: installed once in
+    place of MJX's, so that threads tracing at once each get their own."""
+    @functools.wraps(original)  # MJX names the solve's scope after the function
+    def dispatch(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+        interpret = getattr(_replacing, "interpret", None)
+        return original(m, d) if interpret is None else solve(m, d, interpret)
+
+    dispatch.mjx_solve = original
+    return dispatch
+
+
+_install_lock = threading.Lock()
+
+
 @contextlib.contextmanager
 def solve_replaced(interpret: bool):
-    """While open, MJX's forward dynamics call `solve` in place of `solver.solve`: trace
-    `mjx.step` inside it (the library's functions look the solver up when they are traced)."""
-    original = mjx_solver.solve
-
-    @functools.wraps(original)  # MJX names the solve's scope after the function
-    def replacement(m: mjx.Model, d: mjx.Data) -> mjx.Data:
-        return solve(m, d, interpret)
-
-    mjx_solver.solve = replacement
+    """While open, MJX's forward dynamics traced in this thread call `solve` in place of
+    `solver.solve` (the library looks its solver up when traced): trace `mjx.step` inside
+    it. Other threads keep MJX's solve."""
+    with _install_lock:
+        if not hasattr(mjx_solver.solve, "mjx_solve"):
+            mjx_solver.solve = _solve_of_this_thread(mjx_solver.solve)
+    outer = getattr(_replacing, "interpret", None)
+    _replacing.interpret = interpret
     try:
         yield
     finally:
-        mjx_solver.solve = original
+        _replacing.interpret = outer
