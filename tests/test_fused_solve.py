@@ -8,12 +8,11 @@ import threading
 import jax
 from jax import export
 import jax.numpy as jnp
+from mujoco import mjx
 from mujoco.mjx._src import forward as mjx_forward
 from mujoco.mjx._src import solver as mjx_solver
 import numpy as np
 import pytest
-
-from mujoco import mjx
 
 from pgps_jax.envs import make_env, mjx_rewrites, physics
 from pgps_jax.envs.mjx_rewrites import fused_solve

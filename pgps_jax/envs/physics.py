@@ -237,9 +237,9 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
 
     `write_out_linalg`, `unroll_line_search`, `unroll_solver` and `fused_solve` switch the
     rewrites of `mjx_rewrites` on or off; None gives `Physics`'s defaults for
-    `default_platform()` (on an H200: halfcheetah's physics per env step at batch 40 takes 1.05 ms with the first two
-    instead of 1.33; the ant's env step at batch 60 7.56 ms with its solver's iterations
-    written out instead of 10.69).
+    `default_platform()` (on an H200: halfcheetah's physics per env step at batch 40 takes
+    1.05 ms with the first two instead of 1.33; the ant's env step at batch 60 7.56 ms with
+    its solver's iterations written out instead of 10.69).
 
     The frames are unrolled: on the GPU every trip of a device loop pauses while the host reads
     its condition, which at these batch sizes costs more than the physics between the pauses

@@ -2,8 +2,9 @@
 
 On a GPU MJX's solve is a chain of small kernels, about 105 per solve for the ant (three
 iterations of two line-search steps: half of the device time of its env step, BENCHMARKS.md
-"Where the ant's step goes on the GPU"), each a few microseconds whatever the batch. `solve` computes the same
-thing for each env as one Pallas (Triton) program over zero-padded tiles: the warm start's
+"Where the ant's step goes on the GPU"), each a few microseconds whatever the batch. `solve`
+computes the same thing for each env as one Pallas (Triton) program over zero-padded tiles:
+the warm start's
 choice, the Gauss and constraint costs, the Hessian M + Jᵀ·diag(D·active)·J and its Cholesky
 factor (its own, in masked tile updates), MJX's bracketing line search and stopping tests,
 so that its results agree with MJX's to float tolerance. It covers Newton's method with
@@ -17,7 +18,7 @@ is off by default.
 import contextlib
 import functools
 import threading
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import jax
 import jax.numpy as jnp
@@ -90,6 +91,20 @@ def _cholesky_solve(h: jax.Array, g: jax.Array) -> jax.Array:
         return jnp.where(idx == i, (entry(y, i) - partial) / entry(col, i), x)
 
     return jax.lax.fori_loop(0, size, backward, jnp.zeros_like(g))
+
+
+class _Iterate(NamedTuple):
+    """What one iteration of MJX's solver loop carries to the next (its `Context`)."""
+    qacc: jax.Array
+    jaref: jax.Array
+    ma: jax.Array
+    search: jax.Array
+    gauss: jax.Array
+    cost: jax.Array
+    prev_cost: jax.Array
+    grad: jax.Array
+    efc_force: jax.Array
+    qfrc_constraint: jax.Array
 
 
 def solve_tiles(jac, efc_d, aref, always, mass, qfrc_smooth, qacc_smooth, qacc_warm, *, nv,
@@ -175,12 +190,12 @@ def solve_tiles(jac, efc_d, aref, always, mass, qfrc_smooth, qacc_smooth, qacc_w
         return (qacc + improved * search * alpha, jaref + improved * jv * alpha,
                 ma + improved * mv * alpha)
 
-    def iteration(state):  # the body of MJX's solver loop
-        qacc, jaref, ma, search, gauss, cost = state[:6]
-        qacc, jaref, ma = line_search(qacc, jaref, ma, search, gauss)
-        active, force, new_cost, gauss, qfrc_constraint = constraint(qacc, jaref, ma)
+    def iteration(it: _Iterate) -> _Iterate:  # the body of MJX's solver loop
+        qacc, jaref, ma = line_search(it.qacc, it.jaref, it.ma, it.search, it.gauss)
+        active, force, cost, gauss, qfrc_constraint = constraint(qacc, jaref, ma)
         grad, mgrad = gradient(ma, qfrc_constraint, active)
-        return (qacc, jaref, ma, -mgrad, gauss, new_cost, cost, grad, force, qfrc_constraint)
+        return _Iterate(qacc, jaref, ma, -mgrad, gauss, cost, it.cost, grad, force,
+                        qfrc_constraint)
 
     qacc = qacc_smooth
     if warmstart:
@@ -189,20 +204,18 @@ def solve_tiles(jac, efc_d, aref, always, mass, qfrc_smooth, qacc_smooth, qacc_w
     jaref, ma = mul_j(qacc) - aref, mul_m(qacc)
     active, force, cost, gauss, qfrc_constraint = constraint(qacc, jaref, ma)
     grad, mgrad = gradient(ma, qfrc_constraint, active)
-    state = (qacc, jaref, ma, -mgrad, gauss, cost, jnp.inf, grad, force, qfrc_constraint)
+    it = _Iterate(qacc, jaref, ma, -mgrad, gauss, cost, jnp.inf, grad, force, qfrc_constraint)
     if iterations == 1:
-        state = iteration(state)
+        it = iteration(it)
     else:
         going = None
         for _ in range(iterations):
-            cost, prev_cost, grad = state[5:8]
-            improvement = (prev_cost - cost) / trace
-            steep = norm(grad) / trace
+            improvement = (it.prev_cost - it.cost) / trace
+            steep = norm(it.grad) / trace
             more = ~((improvement < tolerance) | (steep < tolerance))
             going = more if going is None else going & more
-            state = tuple(jnp.where(going, new, old)
-                          for new, old in zip(iteration(state), state))
-    return state[0], state[9], state[8]
+            it = _Iterate(*(jnp.where(going, new, old) for new, old in zip(iteration(it), it)))
+    return it.qacc, it.qfrc_constraint, it.efc_force
 
 
 def solve(m: mjx.Model, d: mjx.Data, interpret: bool) -> mjx.Data:
