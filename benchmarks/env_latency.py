@@ -7,8 +7,10 @@ same model and settings from the same warmed-up physics state: `n_frames` calls 
 Brax's own env (`brax.envs.get_environment(task, backend="mjx")`) as shipped and with our
 solver settings, started from our warmed-up positions and velocities (Brax's swimmer refuses
 the MJX backend). Also at batch 60, one variant of our env (`--alternative`: by default
-Newton with 1 iteration, hopper's and swimmer's own and two fewer than the other tasks').
-Every
+Newton with 1 iteration, hopper's and swimmer's own and two fewer than the other tasks'),
+and how closely it agrees with our env where their states have the same structure: from 20
+states along our env's rollout, one step of each under the same actions, the largest
+difference of the next observation relative to each env's largest |observation|. Every
 function is compiled before any is timed; a figure is the median of 5 timed calls of 100
 steps (Brax's env: 2 calls of 20 steps, it is slow). `--quick` times batch 60 alone, without
 Brax's env: a quarter of the compilation, for comparing settings or XLA flags (`XLA_FLAGS`
@@ -44,6 +46,7 @@ ALTERNATIVE = {"iterations": 1}
 by default one solver iteration, what halfcheetah's, walker2d's and the ant's three cost
 against the single iteration they once had."""
 WARMUP, STEPS, REPEATS = 200, 100, 5
+AGREEMENT_STEPS = 20
 BRAX_STEPS, BRAX_REPEATS = 20, 2
 BRAX_NAMES = {"halfcheetah": "halfcheetah", "hopper": "hopper", "walker2d": "walker2d",
               "ant": "ant"}
@@ -121,6 +124,10 @@ def build(task: str, pool: concurrent.futures.Executor, alternative: dict,
     state = jax.eval_shape(jax.vmap(alt.reset), jax.random.split(key, BRAX_BATCH))
     jobs["alternative"] = (env_rollout(alt, BRAX_BATCH, STEPS), state, key)
     jobs["alternative", "reset"] = (jax.vmap(alt.reset), jax.random.split(key, BRAX_BATCH))
+    actions = jax.ShapeDtypeStruct((BRAX_BATCH, env.action_size), jnp.float32)
+    for name, variant in (("env", env), ("alternative", alt)):
+        state = jax.eval_shape(jax.vmap(variant.reset), jax.random.split(key, BRAX_BATCH))
+        jobs[name, "step"] = (jax.vmap(variant.step), state, actions)
     if with_brax and task in BRAX_NAMES:
         keys = jax.random.split(key, BRAX_BATCH)
         qpos, qvel = (jax.ShapeDtypeStruct((BRAX_BATCH, n), jnp.float32)
@@ -157,6 +164,8 @@ def measure(task: str, fns: dict, alternative: dict, batches: tuple[int, ...]) -
     jax.block_until_ready(fns["alternative"](start, key))  # first call, untimed
     out[f"{alternative_name(alternative)}_ms_batch_{BRAX_BATCH}"] = (
         1e3 * timed(fns["alternative"], start, key, REPEATS) / STEPS)
+    out[f"{alternative_name(alternative)}_largest_relative_difference"] = agreement(
+        fns, warm, start, key)
     for name in ("brax", "brax_same_settings"):
         if (name, "reset") not in fns:
             out[f"{name}_ms_batch_{BRAX_BATCH}"] = None
@@ -170,6 +179,26 @@ def measure(task: str, fns: dict, alternative: dict, batches: tuple[int, ...]) -
     return out
 
 
+def agreement(fns: dict, warm, alternative_start, key) -> float | None:
+    """The largest difference between the next observations of our env and of the variant,
+    one step each from the same states (`AGREEMENT_STEPS` states along our env's rollout from
+    `warm`, uniform random actions), relative to each env's largest |observation|; None where
+    the variant's state differs from ours in structure or shapes."""
+    def layout(tree):
+        return jax.tree.structure(tree), [jnp.shape(x) for x in jax.tree.leaves(tree)]
+    if layout(warm) != layout(alternative_start):
+        return None
+    state, largest = warm, 0.0
+    for t in range(AGREEMENT_STEPS):
+        actions = jax.random.uniform(jax.random.fold_in(key, 1000 + t), warm.obs.shape[:1]
+                                     + (fns["env"].action_size,), minval=-1.0, maxval=1.0)
+        ours, theirs = fns["env", "step"](state, actions), fns["alternative", "step"](state, actions)
+        scale = jnp.maximum(jnp.abs(ours.obs).max(axis=-1), 1e-6)
+        largest = max(largest, float((jnp.abs(theirs.obs - ours.obs).max(axis=-1) / scale).max()))
+        state = ours
+    return largest
+
+
 def alternative_name(alternative: dict) -> str:
     """The variant's name in the results: `iterations_1` for {"iterations": 1}."""
     return "_".join(f"{name}_{value}" for name, value in alternative.items())
@@ -181,18 +210,21 @@ def table(results: dict, alternative: dict, batches: tuple[int, ...]) -> str:
     header = ["task", *(f"env ms @{b}" for b in batches), f"floor ms @{BRAX_BATCH}",
               f"ratio @{BRAX_BATCH}", f"ratio @{batches[0]} / @{batches[-1]}",
               f"Brax env ms @{BRAX_BATCH} (as shipped / our settings)",
-              f"ours, {variant}, ms @{BRAX_BATCH}"]
+              f"ours, {variant}, ms @{BRAX_BATCH}", f"{variant}: largest relative difference"]
     lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for task, r in results["tasks"].items():
         b = r[f"batch_{BRAX_BATCH}"]
         brax = " / ".join("—" if r[f"{n}_ms_batch_{BRAX_BATCH}"] is None
                           else f"{r[f'{n}_ms_batch_{BRAX_BATCH}']:.2f}"
                           for n in ("brax", "brax_same_settings"))
+        difference = r[f"{variant}_largest_relative_difference"]
+        difference = "— (other state shapes)" if difference is None else f"{difference:.1e}"
         lines.append(
             f"| {task} | " + " | ".join(f"{r[f'batch_{x}']['env_ms']:.2f}" for x in batches)
             + f" | {b['bare_ms']:.2f} | {b['ratio']:.2f} | {r[f'batch_{batches[0]}']['ratio']:.2f}"
             f" / {r[f'batch_{batches[-1]}']['ratio']:.2f} | {brax}"
-            f" | {r[f'{variant}_ms_batch_{BRAX_BATCH}']:.2f} |")
+            f" | {r[f'{variant}_ms_batch_{BRAX_BATCH}']:.2f}"
+            f" | {difference} |")
     return "\n".join(lines)
 
 
