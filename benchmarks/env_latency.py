@@ -10,7 +10,8 @@ the MJX backend). Also at batch 60, one variant of our env (`--alternative`: by 
 Newton with 1 iteration, hopper's and swimmer's own and two fewer than the other tasks'),
 and how closely it agrees with our env where their states have the same structure: from 20
 states along our env's rollout, one step of each under the same actions, the largest
-difference of the next observation relative to each env's largest |observation|. Every
+difference of the next observation relative to each env's largest |observation|
+(`benchmarks.step_agreement`, which also gives the spread of float rounding alone). Every
 function is compiled before any is timed; a figure is the median of 5 timed calls of 100
 steps (Brax's env: 2 calls of 20 steps, it is slow). `--quick` times batch 60 alone, without
 Brax's env: a quarter of the compilation, for comparing settings or XLA flags (`XLA_FLAGS`
@@ -35,6 +36,7 @@ import jax.numpy as jnp
 from mujoco import mjx
 import numpy as np
 
+from benchmarks.step_agreement import differences
 from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import TASKS, make_env
@@ -46,7 +48,6 @@ ALTERNATIVE = {"iterations": 1}
 by default one solver iteration, what halfcheetah's, walker2d's and the ant's three cost
 against the single iteration they once had."""
 WARMUP, STEPS, REPEATS = 200, 100, 5
-AGREEMENT_STEPS = 20
 BRAX_STEPS, BRAX_REPEATS = 20, 2
 BRAX_NAMES = {"halfcheetah": "halfcheetah", "hopper": "hopper", "walker2d": "walker2d",
               "ant": "ant"}
@@ -180,23 +181,16 @@ def measure(task: str, fns: dict, alternative: dict, batches: tuple[int, ...]) -
 
 
 def agreement(fns: dict, warm, alternative_start, key) -> float | None:
-    """The largest difference between the next observations of our env and of the variant,
-    one step each from the same states (`AGREEMENT_STEPS` states along our env's rollout from
-    `warm`, uniform random actions), relative to each env's largest |observation|; None where
-    the variant's state differs from ours in structure or shapes."""
+    """The largest relative difference of the next observation between our env and the
+    variant, one step each from the same states along our env's rollout from `warm`
+    (`step_agreement.differences`); None where the variant's state differs from ours in
+    structure or shapes."""
     def layout(tree):
         return jax.tree.structure(tree), [jnp.shape(x) for x in jax.tree.leaves(tree)]
     if layout(warm) != layout(alternative_start):
         return None
-    state, largest = warm, 0.0
-    for t in range(AGREEMENT_STEPS):
-        actions = jax.random.uniform(jax.random.fold_in(key, 1000 + t), warm.obs.shape[:1]
-                                     + (fns["env"].action_size,), minval=-1.0, maxval=1.0)
-        ours, theirs = fns["env", "step"](state, actions), fns["alternative", "step"](state, actions)
-        scale = jnp.maximum(jnp.abs(ours.obs).max(axis=-1), 1e-6)
-        largest = max(largest, float((jnp.abs(theirs.obs - ours.obs).max(axis=-1) / scale).max()))
-        state = ours
-    return largest
+    return float(differences(fns["env", "step"], fns["alternative", "step"], warm, key,
+                             fns["env"].action_size).max())
 
 
 def alternative_name(alternative: dict) -> str:
