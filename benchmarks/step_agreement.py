@@ -10,6 +10,8 @@ envs and states. The variants:
 - `tf32_products`: the default with the operands of every float32 matrix-matrix product
   rounded to TF32's 10 mantissa bits, what a GPU's tensor cores multiply at JAX's default
   precision; emulated, so meaningful where products are float32 (a CPU);
+- `tf32_solver_products`: the same rounding in the products of MJX's constraint solver alone
+  (`SOLVER`), what a variant that replaces only the solve can differ by;
 - each `--variant NAME=VALUE ...` (`make_env` arguments, e.g. `fused_solve=true`).
 
     python -m benchmarks.step_agreement --tasks walker2d,ant --variant fused_solve=true
@@ -20,6 +22,8 @@ envs and states. The variants:
 import argparse
 import contextlib
 import json
+import sys
+from typing import Optional
 
 import jax
 from jax._src.lax import lax as lax_internals
@@ -32,6 +36,8 @@ from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import TASKS, make_env
 
 BATCH, WARMUP, STEPS = 60, 200, 20
+SOLVER = "mujoco.mjx._src.solver"
+"""The module of MJX's constraint solver."""
 
 
 def differences(reference, variant, start, key: jax.Array, action_size: int,
@@ -58,16 +64,27 @@ def _tf32(x: jax.Array) -> jax.Array:
     return jax.lax.bitcast_convert_type(bits, jnp.float32)
 
 
+def _traced_within(module: str, frame) -> bool:
+    """Whether `frame` or one it was called from runs a function of `module`."""
+    while frame is not None:
+        if frame.f_globals.get("__name__") == module:
+            return True
+        frame = frame.f_back
+    return False
+
+
 @contextlib.contextmanager
-def tf32_products():
+def tf32_products(within: Optional[str] = None):
     """While open, programs traced multiply float32 matrices (both operands of rank 2 or more)
-    from TF32-rounded operands; JAX's caches are cleared on entry and exit, so that the
-    programs traced inside are traced afresh and none outside keeps the rounding."""
+    from TF32-rounded operands, everywhere or only inside functions of the module `within`;
+    JAX's caches are cleared on entry and exit, so that the programs traced inside are traced
+    afresh and none outside keeps the rounding."""
     exact = lax_internals.dot_general
 
     def rounded(lhs, rhs, *args, **kwargs):
         if (jnp.ndim(lhs) >= 2 and jnp.ndim(rhs) >= 2
-                and jnp.result_type(lhs) == jnp.result_type(rhs) == jnp.float32):
+                and jnp.result_type(lhs) == jnp.result_type(rhs) == jnp.float32
+                and (within is None or _traced_within(within, sys._getframe(1)))):
             lhs, rhs = _tf32(lhs), _tf32(rhs)
         return exact(lhs, rhs, *args, **kwargs)
     jax.clear_caches()
@@ -101,8 +118,10 @@ def measure(task: str, variants: list[dict]) -> dict:
 
     def compiled(variant_env, wrap=lambda step: step):
         return jax.jit(wrap(jax.vmap(variant_env.step))).lower(start, actions[0]).compile()
-    with tf32_products():
-        steps = {"tf32_products": compiled(make_env(task))}
+    steps = {}
+    for name, within in (("tf32_products", None), ("tf32_solver_products", SOLVER)):
+        with tf32_products(within):
+            steps[name] = compiled(make_env(task))
     reference = compiled(env)
     steps["one_ulp"] = compiled(env, _one_ulp)
     for variant in variants:

@@ -2,6 +2,7 @@
 products only, and the relative difference of next observations."""
 
 import dataclasses
+import inspect
 
 import jax
 import jax.numpy as jnp
@@ -54,3 +55,17 @@ def test_differences_are_relative_to_each_envs_largest_observation():
         expected.append(0.01 / np.abs(np.asarray(state.obs)).max(axis=-1))
     np.testing.assert_allclose(got, np.stack(expected), rtol=1e-4)
     assert not step_agreement.differences(step, step, start, jax.random.PRNGKey(0), 1).any()
+
+
+def test_tf32_products_within_a_module_round_its_products_alone():
+    """Limited to the module that defines `jnp.dot`, its products are rounded; `lax.dot`'s,
+    called from elsewhere, are not."""
+    a, b = (jax.random.normal(jax.random.PRNGKey(k), (8, 8)) for k in (1, 2))
+    tf32 = lambda m: np.asarray(step_agreement._tf32(m), np.float64)
+    defining_module = inspect.unwrap(jnp.dot).__globals__["__name__"]
+    with step_agreement.tf32_products(within=defining_module):
+        inside, outside = jax.jit(lambda a, b: (jnp.dot(a, b), jax.lax.dot(a, b)))(a, b)
+    np.testing.assert_allclose(inside, tf32(a) @ tf32(b), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(outside, np.asarray(a, np.float64) @ np.asarray(b, np.float64),
+                               rtol=1e-5, atol=1e-5)
+    assert np.abs(np.asarray(inside) - np.asarray(outside)).max() > 1e-3
