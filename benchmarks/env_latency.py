@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from mujoco import mjx
 import numpy as np
 
-from benchmarks.step_agreement import differences
+from benchmarks.step_agreement import differences, variant_name
 from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import TASKS, make_env
@@ -122,13 +122,13 @@ def build(task: str, pool: concurrent.futures.Executor, alternative: dict,
         jobs["env", batch] = (env_rollout(env, batch, STEPS), state, key)
         jobs["bare", batch] = (bare_rollout(env, batch, STEPS), state.pipeline_state, key)
     alt = make_env(task, **alternative)
-    state = jax.eval_shape(jax.vmap(alt.reset), jax.random.split(key, BRAX_BATCH))
-    jobs["alternative"] = (env_rollout(alt, BRAX_BATCH, STEPS), state, key)
-    jobs["alternative", "reset"] = (jax.vmap(alt.reset), jax.random.split(key, BRAX_BATCH))
     actions = jax.ShapeDtypeStruct((BRAX_BATCH, env.action_size), jnp.float32)
-    for name, variant in (("env", env), ("alternative", alt)):
-        state = jax.eval_shape(jax.vmap(variant.reset), jax.random.split(key, BRAX_BATCH))
-        jobs[name, "step"] = (jax.vmap(variant.step), state, actions)
+    shapes = {name: jax.eval_shape(jax.vmap(variant.reset), jax.random.split(key, BRAX_BATCH))
+              for name, variant in (("env", env), ("alternative", alt))}
+    jobs["env", "step"] = (jax.vmap(env.step), shapes["env"], actions)
+    jobs["alternative", "step"] = (jax.vmap(alt.step), shapes["alternative"], actions)
+    jobs["alternative"] = (env_rollout(alt, BRAX_BATCH, STEPS), shapes["alternative"], key)
+    jobs["alternative", "reset"] = (jax.vmap(alt.reset), jax.random.split(key, BRAX_BATCH))
     if with_brax and task in BRAX_NAMES:
         keys = jax.random.split(key, BRAX_BATCH)
         qpos, qvel = (jax.ShapeDtypeStruct((BRAX_BATCH, n), jnp.float32)
@@ -163,9 +163,9 @@ def measure(task: str, fns: dict, alternative: dict, batches: tuple[int, ...]) -
     start = start.replace(obs=warm.obs, pipeline_state=start.pipeline_state.replace(
         qpos=warm.pipeline_state.qpos, qvel=warm.pipeline_state.qvel))
     jax.block_until_ready(fns["alternative"](start, key))  # first call, untimed
-    out[f"{alternative_name(alternative)}_ms_batch_{BRAX_BATCH}"] = (
+    out[f"{variant_name(alternative)}_ms_batch_{BRAX_BATCH}"] = (
         1e3 * timed(fns["alternative"], start, key, REPEATS) / STEPS)
-    out[f"{alternative_name(alternative)}_largest_relative_difference"] = agreement(
+    out[f"{variant_name(alternative)}_largest_relative_difference"] = agreement(
         fns, warm, start, key)
     for name in ("brax", "brax_same_settings"):
         if (name, "reset") not in fns:
@@ -193,14 +193,9 @@ def agreement(fns: dict, warm, alternative_start, key) -> float | None:
                              fns["env"].action_size).max())
 
 
-def alternative_name(alternative: dict) -> str:
-    """The variant's name in the results: `iterations_1` for {"iterations": 1}."""
-    return "_".join(f"{name}_{value}" for name, value in alternative.items())
-
-
 def table(results: dict, alternative: dict, batches: tuple[int, ...]) -> str:
     """The results as a markdown table."""
-    variant = alternative_name(alternative)
+    variant = variant_name(alternative)
     header = ["task", *(f"env ms @{b}" for b in batches), f"floor ms @{BRAX_BATCH}",
               f"ratio @{BRAX_BATCH}", f"ratio @{batches[0]} / @{batches[-1]}",
               f"Brax env ms @{BRAX_BATCH} (as shipped / our settings)",

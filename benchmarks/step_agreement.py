@@ -40,10 +40,15 @@ SOLVER = "mujoco.mjx._src.solver"
 """The module of MJX's constraint solver."""
 
 
+def variant_name(arguments: dict) -> str:
+    """A variant's name in the results: `fused_solve_True` for {"fused_solve": True}."""
+    return "_".join(f"{name}_{value}" for name, value in arguments.items())
+
+
 def differences(reference, variant, start, key: jax.Array, action_size: int,
                 steps: int = STEPS) -> np.ndarray:
-    """[steps, envs]: |variant's next observation − reference's| over the env's largest
-    |reference observation|, one step of each (batched `(state, actions) -> state`) from the
+    """[steps, envs]: the largest component of |variant's next observation − reference's|
+    over the env's largest |reference observation|, one step of each (batched `(state, actions) -> state`) from the
     same `steps` states along `reference`'s rollout from `start`, uniform random actions (of
     `key` folded with 1000 + t, apart from the keys a warm-up from `key` would use)."""
     state, out = start, []
@@ -58,10 +63,10 @@ def differences(reference, variant, start, key: jax.Array, action_size: int,
 
 
 def _tf32(x: jax.Array) -> jax.Array:
-    """x rounded to the nearest value with 10 mantissa bits (TF32's)."""
+    """x rounded to the nearest value with 10 mantissa bits (TF32's); inf and NaN kept."""
     bits = jax.lax.bitcast_convert_type(x, jnp.uint32)
     bits = (bits + jnp.uint32(0x1000)) & jnp.uint32(0xFFFFE000)
-    return jax.lax.bitcast_convert_type(bits, jnp.float32)
+    return jnp.where(jnp.isfinite(x), jax.lax.bitcast_convert_type(bits, jnp.float32), x)
 
 
 def _traced_within(module: str, frame) -> bool:
@@ -75,18 +80,24 @@ def _traced_within(module: str, frame) -> bool:
 
 @contextlib.contextmanager
 def tf32_products(within: Optional[str] = None):
-    """While open, programs traced multiply float32 matrices (both operands of rank 2 or more)
-    from TF32-rounded operands, everywhere or only inside functions of the module `within`;
-    JAX's caches are cleared on entry and exit, so that the programs traced inside are traced
-    afresh and none outside keeps the rounding."""
+    """While open, programs traced multiply float32 matrices (both operands of rank 2 or more
+    per env) from TF32-rounded operands unless a product asks for `Precision.HIGHEST`,
+    everywhere or only inside functions of the module `within`. JAX's caches are cleared on
+    entry and exit, so that the programs traced inside are traced afresh and none outside
+    keeps the rounding. Within the context JAX still reuses the trace of a jitted `jnp`
+    product of the same shapes, rounded or not: a module's products are told apart from
+    others' only where their shapes differ (MJX's solver's Hessian, Jᵀ·D·J, has shapes of its
+    own in each task's step)."""
     exact = lax_internals.dot_general
 
-    def rounded(lhs, rhs, *args, **kwargs):
-        if (jnp.ndim(lhs) >= 2 and jnp.ndim(rhs) >= 2
+    def rounded(lhs, rhs, dimension_numbers, precision=None, *args, **kwargs):
+        highest = lax_internals.canonicalize_precision(precision)
+        highest = isinstance(highest, tuple) and jax.lax.Precision.HIGHEST in highest
+        if (jnp.ndim(lhs) >= 2 and jnp.ndim(rhs) >= 2 and not highest
                 and jnp.result_type(lhs) == jnp.result_type(rhs) == jnp.float32
                 and (within is None or _traced_within(within, sys._getframe(1)))):
             lhs, rhs = _tf32(lhs), _tf32(rhs)
-        return exact(lhs, rhs, *args, **kwargs)
+        return exact(lhs, rhs, dimension_numbers, precision, *args, **kwargs)
     jax.clear_caches()
     lax_internals.dot_general = rounded
     try:
@@ -125,8 +136,7 @@ def measure(task: str, variants: list[dict]) -> dict:
     reference = compiled(env)
     steps["one_ulp"] = compiled(env, _one_ulp)
     for variant in variants:
-        steps["_".join(f"{k}_{v}" for k, v in variant.items())] = compiled(
-            make_env(task, **variant))
+        steps[variant_name(variant)] = compiled(make_env(task, **variant))
     out = {"done_fraction": float(start.done.mean())}
     for name, step in steps.items():
         d = differences(reference, step, start, key, env.action_size)
