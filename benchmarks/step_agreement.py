@@ -48,9 +48,10 @@ def variant_name(arguments: dict) -> str:
 def differences(reference, variant, start, key: jax.Array, action_size: int,
                 steps: int = STEPS) -> np.ndarray:
     """[steps, envs]: the largest component of |variant's next observation − reference's|
-    over the env's largest |reference observation|, one step of each (batched `(state, actions) -> state`) from the
-    same `steps` states along `reference`'s rollout from `start`, uniform random actions (of
-    `key` folded with 1000 + t, apart from the keys a warm-up from `key` would use)."""
+    over the env's largest |reference observation|, one step of each (batched `(state,
+    actions) -> state`) from the same `steps` states along `reference`'s rollout from `start`,
+    uniform random actions (of `key` folded with 1000 + t, apart from the keys a warm-up from
+    `key` would use)."""
     state, out = start, []
     for t in range(steps):
         actions = jax.random.uniform(jax.random.fold_in(key, 1000 + t), (start.obs.shape[0],
