@@ -7,16 +7,17 @@ default; a figure is the difference of the next observation relative to the env'
 envs and states. The variants:
 - `one_ulp`: the default from velocities moved by one unit in the last place, at random: the
   spread that float rounding alone gives;
-- `tf32_products`: the default with the operands of every float32 matrix-matrix product
-  rounded to TF32's 10 mantissa bits, what a GPU's tensor cores multiply at JAX's default
-  precision; emulated, so meaningful where products are float32 (a CPU);
+- `tf32_products`: the task with `matmul_precision=default`, the operands of its float32
+  matrix-matrix products rounded to TF32's 10 mantissa bits: what a GPU's tensor cores
+  multiply at JAX's default precision; emulated, so meaningful where products are float32
+  (a CPU);
 - `tf32_solver_products`: the same rounding in the products of MJX's constraint solver alone
-  (`SOLVER`), what a variant that replaces only the solve can differ by;
-- each `--variant NAME=VALUE ...` (`make_env` arguments, e.g. `fused_solve=true`).
+  (`SOLVER`);
+- each `--variant NAME=VALUE ...` (`make_env` arguments; on a GPU `matmul_precision=default`
+  gives its real TF32 products, `fused_solve=false` MJX's own solve).
 
     python -m benchmarks.step_agreement --tasks walker2d,ant --variant fused_solve=true
-    JAX_DEFAULT_MATMUL_PRECISION=highest python -m benchmarks.step_agreement --tasks ant \
-        --variant fused_solve=true --out ant_highest.json   # a GPU's products in float32
+    python -m benchmarks.step_agreement --variant matmul_precision=default fused_solve=false
 """
 
 import argparse
@@ -133,7 +134,7 @@ def measure(task: str, variants: list[dict]) -> dict:
     steps = {}
     for name, within in (("tf32_products", None), ("tf32_solver_products", SOLVER)):
         with tf32_products(within):
-            steps[name] = compiled(make_env(task))
+            steps[name] = compiled(make_env(task, matmul_precision="default"))
     reference = compiled(env)
     steps["one_ulp"] = compiled(env, _one_ulp)
     for variant in variants:

@@ -111,6 +111,23 @@ def test_physics_overrides_reach_the_model():
         make_env("hopper", integrator="implicit")
 
 
+def test_the_physics_multiplies_in_float32_unless_told_otherwise():
+    """Every matrix product of the env step asks for float32 (HIGHEST: a GPU would otherwise
+    round its inputs to TF32); with matmul_precision=default none does."""
+    for precision, highest in (("highest", True), ("default", False)):
+        env = make_env("hopper", matmul_precision=precision)
+        state = env.reset(jax.random.PRNGKey(0))
+        lowered = jax.jit(env.step).lower(state, jnp.zeros(env.action_size)).as_text()
+        products = [line for line in lowered.splitlines() if "dot_general" in line]
+        assert len(products) > 10
+        assert [("HIGHEST" in line) for line in products] == [highest] * len(products)
+    with pytest.raises(ValueError, match="matmul_precision must be one of highest, default"):
+        make_env("hopper", matmul_precision="tensorfloat32")
+    with pytest.raises(ValueError, match="fused_solve computes in float32.*"
+                                         "matmul_precision=highest or fused_solve=false"):
+        make_env("hopper", matmul_precision="default", fused_solve=True)
+
+
 def _floor_contacts(env, torso_z: float) -> set[str]:
     """Names of the geoms touching the floor with the ant's torso lowered to `torso_z`."""
     model = env.mj_model

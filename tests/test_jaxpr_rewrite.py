@@ -217,14 +217,15 @@ def test_unrolled_solver_is_the_same_ant_physics_without_its_loop():
 
 
 def test_the_rewrites_follow_the_platform_by_default(monkeypatch):
-    """With the switches left at None, a program for a GPU has none of the device loops of
-    the ant's physics step (frames, solver iterations, line search); one for the CPU keeps
-    them."""
+    """With the switches left at None (the fused solve aside: `test_fused_solve` follows its
+    default), a program for a GPU has none of the device loops of the ant's physics step
+    (frames, solver iterations, line search); one for the CPU keeps them."""
     env = make_env("ant")
     data = env.reset(jax.random.PRNGKey(0)).pipeline_state
 
     def loops():
-        step = jax.jit(functools.partial(physics.step_frames, env.mjx_model, n_frames=2))
+        step = jax.jit(functools.partial(physics.step_frames, env.mjx_model, n_frames=2,
+                                         fused_solve=False))
         return len(re.findall(r"stablehlo\.while", step.lower(data).as_text()))
     monkeypatch.setattr(physics, "default_platform", lambda: "cpu")
     on_cpu = loops()

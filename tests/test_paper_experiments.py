@@ -229,37 +229,67 @@ def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
         command.run("figure4", out, other, tasks=["hopper"], configs=["pgps"],
                     progress=False)
     contacts = dataclasses.replace(BUDGET, env=(("iterations", 2),))
-    with pytest.raises(UsageError, match="env: {} there, {'iterations': 2} now"):
+    with pytest.raises(UsageError, match="physics: {.*'iterations': 1.*} there, {.*"
+                                         "'iterations': 2.*} now"):
         command.run("figure4", out, contacts, tasks=["hopper"], configs=["pgps"],
                     progress=False)
     result = json.loads((out / "figure4" / "hopper" / "pgps" / runner.RESULT).read_text())
     assert result["settings"]["physics"] == {
         "start_pose": "qpos0", "integrator": "euler", "solver": "newton", "iterations": 1,
-        "ls_iterations": 4, "euler_damping": False, "floor_contacts": "model", "impl": "jax"}
+        "ls_iterations": 4, "euler_damping": False, "floor_contacts": "model",
+        "matmul_precision": "highest", "impl": "jax"}
+    # `--env` arguments that change only how the physics is computed are the same cell
+    speed_only = {**result["settings"], "env": {"unroll_solver": False},
+                  "physics": make_env("hopper", unroll_solver=False).settings()}
+    runner._require_same(out, result["settings"], speed_only, "hopper", done=True)
     before_env = {k: v for k, v in result["settings"].items() if k != "env"}
     runner._require_same(out, before_env, result["settings"], "hopper")  # from before --env
 
 
 def test_a_cell_from_before_the_physics_was_recorded_ran_on_the_physics_of_then():
     """A result without `physics` counts as run on the task's physics of that time, with its
-    `--env` arguments: hopper's is today's, walker2d's and halfcheetah's solved with one
-    Newton iteration and the ant's with two (not three)."""
-    def settings(task):
-        return runner._settings("pgps", for_task(task), BUDGET, 1, make_env(task))
+    `--env` arguments: JAX's default matrix products (`matmul_precision=default`) and
+    otherwise hopper's of today, walker2d's and halfcheetah's solved with one Newton
+    iteration and the ant's with two (not three)."""
+    then_products = (("matmul_precision", "default"),)
+
+    def settings(task, env=()):
+        return runner._settings("pgps", for_task(task), dataclasses.replace(
+            BUDGET, env=then_products + env), 1, make_env(task, **dict(then_products + env)))
     for task in ("hopper", "walker2d", "halfcheetah", "ant"):
         now = settings(task)
-        before = {k: v for k, v in now.items() if k != "physics"}
+        before = {**now, "env": {}}
+        before.pop("physics")
         if task == "hopper":
             runner._require_same(pathlib.Path("cell"), before, now, task)
         else:
             then = 2 if task == "ant" else 1
             with pytest.raises(UsageError, match=f"'iterations': {then}.*'iterations': 3"):
                 runner._require_same(pathlib.Path("cell"), before, now, task)
-    # one run then with `--env iterations=3` ran on today's physics
-    now = runner._settings("pgps", for_task("walker2d"), dataclasses.replace(
-        BUDGET, env=(("iterations", 3),)), 1, make_env("walker2d", iterations=3))
-    runner._require_same(pathlib.Path("cell"), {k: v for k, v in now.items() if k != "physics"},
-                         now, "walker2d")
+    with pytest.raises(UsageError, match="'matmul_precision': 'default'.*'matmul_precision': "
+                                         "'highest'"):
+        runner._require_same(pathlib.Path("cell"), before, runner._settings(
+            "pgps", for_task("ant"), BUDGET, 1, make_env("ant")), "ant")
+    # one run then with `--env iterations=3` ran on today's iterations
+    now = settings("walker2d", (("iterations", 3),))
+    runner._require_same(pathlib.Path("cell"), {**{k: v for k, v in now.items()
+                                                   if k != "physics"},
+                                                "env": {"iterations": 3}}, now, "walker2d")
+
+
+def test_a_recorded_physics_from_before_matmul_precision_had_the_platform_s_products():
+    """Physics recorded before `matmul_precision` existed ran with JAX's default products:
+    not today's float32 ones, the same as a run today with matmul_precision=default."""
+    now = runner._settings("pgps", for_task("hopper"), BUDGET, 1, make_env("hopper"))
+    before = {**now, "physics": {k: v for k, v in now["physics"].items()
+                                 if k != "matmul_precision"}}
+    with pytest.raises(UsageError, match="'matmul_precision': 'default'.*'matmul_precision': "
+                                         "'highest'"):
+        runner._require_same(pathlib.Path("cell"), before, now, "hopper")
+    as_then = runner._settings("pgps", for_task("hopper"), dataclasses.replace(
+        BUDGET, env=(("matmul_precision", "default"),)), 1,
+        make_env("hopper", matmul_precision="default"))
+    runner._require_same(pathlib.Path("cell"), before, as_then, "hopper")
 
 
 def test_a_recorded_physics_from_before_impl_ran_on_jax():

@@ -98,7 +98,8 @@ class MjxEnv(Env):
         data = physics.step_frames(self.mjx_model, data0.replace(ctrl=action), self.n_frames,
                                    self.physics.write_out_linalg,
                                    self.physics.unroll_line_search,
-                                   self.physics.unroll_solver, self.physics.fused_solve)
+                                   self.physics.unroll_solver, self.physics.fused_solve,
+                                   self.physics.matmul_precision)
         terms = self.reward_terms(data0.qpos, data.qpos, action)
         obs = self.observation(data.qpos, data.qvel)
         new = state.replace(

@@ -21,7 +21,7 @@ from mujoco import mjx
 import numpy as np
 
 from pgps_jax.envs import mjx_rewrites
-from pgps_jax.envs.mjx_rewrites import fused_solve
+from pgps_jax.envs.mjx_rewrites import fused_solve as fused
 from pgps_jax.envs.mjx_rewrites import small_linalg
 
 _ASSETS = epath.resource_path(brax.__name__) / "envs/assets"
@@ -47,6 +47,10 @@ removed."""
 SPEED_ONLY = ("write_out_linalg", "unroll_line_search", "unroll_solver", "fused_solve")
 """The `Physics` fields that change how a physics step is computed, not what (its results
 stay equal to float tolerance)."""
+MATMUL_PRECISIONS = ("highest", "default")
+"""The precision of the physics' float32 matrix products: float32 ('highest'), or the
+platform's default, which on a recent NVIDIA GPU rounds their inputs to TF32 (10-bit
+mantissas)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,10 +79,15 @@ class Physics:
     unroll_solver: Optional[bool] = None
     """The solver's iterations, when there are several, without a device loop
     (`mjx_rewrites`); None: on a GPU."""
-    fused_solve: bool = False
+    matmul_precision: str = "highest"
+    """One of `MATMUL_PRECISIONS`. With 'default' a GPU's next states differ from float32's by
+    up to 1e-2 (relative) after one env step, a thousand times float32's own rounding, at no
+    gain in speed (BENCHMARKS.md "The Newton solve as one kernel")."""
+    fused_solve: Optional[bool] = None
     """The Newton solve as one kernel per env (`mjx_rewrites.fused_solve`; interpreted off a
-    GPU). Off by default: 1.2-1.7 times shorter steps on an H100, but its agreement with MJX's
-    step there is not yet settled."""
+    GPU): 1.2-1.7 times shorter env steps on an H100, its states equal to MJX's to float
+    tolerance. None: on a GPU, for a model it covers, with float32 products around it (its
+    own are float32)."""
     impl: str = "jax"
     """One of `IMPLS`. Warp's solver is MuJoCo's, not MJX's JAX one: solved to convergence
     the two agree, with a truncated solve their states differ beyond float tolerance. The
@@ -100,6 +109,13 @@ class Physics:
         if self.floor_contacts not in FLOOR_CONTACTS:
             raise ValueError(f"floor_contacts must be one of {', '.join(FLOOR_CONTACTS)}, "
                              f"got {self.floor_contacts!r}")
+        if self.matmul_precision not in MATMUL_PRECISIONS:
+            raise ValueError(f"matmul_precision must be one of {', '.join(MATMUL_PRECISIONS)}, "
+                             f"got {self.matmul_precision!r}")
+        if self.fused_solve and self.matmul_precision != "highest":
+            raise ValueError("fused_solve computes in float32: with matmul_precision="
+                             f"{self.matmul_precision!r} around it the step would mix two "
+                             "precisions; set matmul_precision=highest or fused_solve=false")
         if self.iterations < 1 or self.ls_iterations < 1:
             raise ValueError(
                 f"iterations and ls_iterations must be >= 1, got {self.iterations}, "
@@ -137,7 +153,7 @@ def load_model(xml: str, physics: Physics) -> tuple[mujoco.MjModel, mjx.Model]:
     if physics.impl != "warp":
         jax_model = mjx.put_model(model, impl="jax")
         if physics.fused_solve:
-            fused_solve.refuse_unsupported(jax_model)
+            fused.refuse_unsupported(jax_model)
         return model, jax_model
     if physics.fused_solve:
         raise ValueError("fused_solve replaces MJX's JAX solver, not Warp's: with impl=warp "
@@ -233,8 +249,11 @@ def default_platform() -> str:
 def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
                 write_out_linalg: Optional[bool] = None,
                 unroll_line_search: Optional[bool] = None,
-                unroll_solver: Optional[bool] = None, fused_solve: bool = False) -> mjx.Data:
-    """Advances `data` by `n_frames` physics steps with its control held fixed.
+                unroll_solver: Optional[bool] = None, fused_solve: Optional[bool] = None,
+                matmul_precision: str = "highest") -> mjx.Data:
+    """Advances `data` by `n_frames` physics steps with its control held fixed, its matrix
+    products at `matmul_precision` (one of `MATMUL_PRECISIONS`; 'default' leaves them at
+    JAX's `default_matmul_precision` where the step is traced).
 
     `write_out_linalg`, `unroll_line_search`, `unroll_solver` and `fused_solve` switch the
     rewrites of `mjx_rewrites` on or off; None gives `Physics`'s defaults for
@@ -250,17 +269,20 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
     as it is.
     """
     on_gpu = default_platform() == "gpu"
-    if model.impl == mjx.Impl.WARP:
-        step = functools.partial(mjx.step, model)
-    else:
-        step = _rewritten_step(model, on_gpu, write_out_linalg, unroll_line_search,
-                               unroll_solver, fused_solve)
-    return jax.lax.fori_loop(0, n_frames, lambda _, d: step(d), data, unroll=on_gpu)
+    precision = (contextlib.nullcontext() if matmul_precision == "default"
+                 else jax.default_matmul_precision(matmul_precision))
+    with precision:
+        if model.impl == mjx.Impl.WARP:
+            step = functools.partial(mjx.step, model)
+        else:
+            step = _rewritten_step(model, on_gpu, write_out_linalg, unroll_line_search,
+                                   unroll_solver, fused_solve, matmul_precision)
+        return jax.lax.fori_loop(0, n_frames, lambda _, d: step(d), data, unroll=on_gpu)
 
 
 def _rewritten_step(model: mjx.Model, on_gpu: bool, write_out_linalg: Optional[bool],
                     unroll_line_search: Optional[bool], unroll_solver: Optional[bool],
-                    fused_solve: bool):
+                    fused_solve: Optional[bool], matmul_precision: str):
     """MJX's JAX physics step with the `mjx_rewrites` switched on or off (None: `Physics`'s
     defaults for the platform)."""
     if write_out_linalg is None:
@@ -269,5 +291,7 @@ def _rewritten_step(model: mjx.Model, on_gpu: bool, write_out_linalg: Optional[b
         unroll_line_search = on_gpu
     if unroll_solver is None:
         unroll_solver = on_gpu
+    if fused_solve is None:
+        fused_solve = on_gpu and matmul_precision == "highest" and fused.covers(model)
     return mjx_rewrites.physics_step(model, write_out_linalg, unroll_line_search,
                                      unroll_solver, fused_solve, on_gpu)

@@ -8,9 +8,9 @@ the warm start's choice, the Gauss and constraint costs, the Hessian M + Jᵀ·d
 and its Cholesky factor (its own, in masked tile updates), MJX's bracketing line search and
 stopping tests, so that its results agree with MJX's to float tolerance. It covers Newton's
 method with pyramidal cones and no friction loss (`refuse_unsupported`); off a GPU the program
-runs interpreted, for the tests. On an H100 it makes the env step 1.2-1.7 times shorter, but
-its agreement with MJX's step there is not yet settled (BENCHMARKS.md "The Newton solve as one
-kernel"), so it is off by default.
+runs interpreted, for the tests. On an H100 it makes the env step 1.2-1.7 times shorter, its
+next states within float32's rounding of MJX's step with float32 products (BENCHMARKS.md "The
+Newton solve as one kernel"); `Physics` uses it by default on a GPU.
 
 `solve_replaced()` makes `mjx.step` call `solve` while it is traced in the calling thread.
 """
@@ -42,6 +42,11 @@ def _unsupported(model: mjx.Model) -> Optional[str]:
     if model._impl.dof_hasfrictionloss.any() or model._impl.tendon_hasfrictionloss.any():
         return "the model has friction loss"
     return None
+
+
+def covers(model: mjx.Model) -> bool:
+    """Whether `solve` can stand in for MJX's on `model`."""
+    return _unsupported(model) is None
 
 
 def refuse_unsupported(model: mjx.Model) -> None:

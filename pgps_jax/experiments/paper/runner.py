@@ -455,7 +455,7 @@ yet (the Newton iterations of halfcheetah, walker2d and ant, and the ant's line 
 ant's results from before its Gym physics are not cells)."""
 
 
-_PHYSICS_FIELDS_ADDED = {"impl": "jax"}
+_PHYSICS_FIELDS_ADDED = {"impl": "jax", "matmul_precision": "default"}
 """Physics settings that cells recorded before they existed ran under."""
 
 
@@ -470,18 +470,20 @@ def physics_of(settings: dict, task: str) -> Optional[dict]:
     today = env_physics(make_env(task))
     if today is None:
         return None
-    then = {**today, **_PHYSICS_BEFORE_RECORDED.get(task, {})}
+    then = {**today, **_PHYSICS_FIELDS_ADDED, **_PHYSICS_BEFORE_RECORDED.get(task, {})}
     return {**then, **{k: v for k, v in settings.get("env", {}).items() if k in then}}
 
 
 def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
                   done: bool = False) -> None:
     """UsageError naming the settings in which the cell of `task` in `directory` differs from
-    `now` (for a `done` cell, the devices its seeds were split over and the number of seeds
-    do not count: a cell continued from a checkpoint needs its batch, a result does not, and
-    a done cell can be given more seeds)."""
+    `now` (the `--env` arguments count through the physics they give, so that those which
+    change only how it is computed, `physics.SPEED_ONLY`, do not; for a `done` cell, the
+    devices its seeds were split over and the number of seeds do not count either: a cell
+    continued from a checkpoint needs its batch, a result does not, and a done cell can be
+    given more seeds)."""
     saved = {**_ADDED_SETTINGS, **saved, "physics": physics_of(saved, task)}
-    ignored = {"config"} | ({"devices", "seeds"} if done else set())
+    ignored = {"config", "env"} | ({"devices", "seeds"} if done else set())
     differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now" for key in now
               if key not in ignored and saved.get(key) != now[key]]
     saved_config = saved_fields_as_run(saved["config"], _ADDED_CONFIG_FIELDS)
