@@ -18,7 +18,7 @@ Brax's env: a quarter of the compilation, for comparing settings or XLA flags (`
 is recorded with the results).
 
     python -m benchmarks.env_latency  # table on stdout, benchmarks/results/env_latency.json
-    python -m benchmarks.env_latency --tasks ant --alternative unroll_solver=false --out ant.json
+    python -m benchmarks.env_latency --tasks ant --alternative fused_solve=false --out ant.json
     XLA_FLAGS=--xla_gpu_enable_command_buffer=+WHILE python -m benchmarks.env_latency --quick \
         --tasks ant --out ant_command_buffers.json
 """
@@ -39,7 +39,7 @@ import numpy as np
 from benchmarks.step_agreement import differences, variant_name
 from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
-from pgps_jax.envs import TASKS, make_env
+from pgps_jax.envs import TASKS, make_env, physics
 
 BATCHES = (10, 60, 1024)
 BRAX_BATCH = 60
@@ -66,7 +66,8 @@ def env_rollout(env, batch: int, n_steps: int):
 
 
 def bare_rollout(env, batch: int, n_steps: int):
-    """(data, key) -> data after n_steps × n_frames of vmap(mjx.step) under random controls."""
+    """(data, key) -> data after n_steps × n_frames of vmap(mjx.step) under random controls,
+    its matrix products at the env's precision."""
     model = env.mjx_model
 
     def env_step(data, ctrl):
@@ -76,7 +77,9 @@ def bare_rollout(env, batch: int, n_steps: int):
             data), None
 
     def rollout(data, key):
-        return jax.lax.scan(env_step, data, _actions(key, n_steps, batch, env.action_size))[0]
+        with jax.default_matmul_precision(env.physics.matmul_precision):
+            return jax.lax.scan(env_step, data,
+                                _actions(key, n_steps, batch, env.action_size))[0]
     return rollout
 
 
@@ -146,7 +149,7 @@ def measure(task: str, fns: dict, alternative: dict, batches: tuple[int, ...]) -
     """Times one task's compiled functions; returns its figures (Brax's env None where it was
     not compiled)."""
     env, key = fns["env"], jax.random.PRNGKey(1)
-    out = {"n_frames": env.n_frames, "dt": env.dt, "physics": dataclasses.asdict(env.physics)}
+    out = {"n_frames": env.n_frames, "dt": env.dt, "physics": dataclasses.asdict(physics.resolved(env.physics, env.mjx_model))}
     for batch in batches:
         state = jax.jit(jax.vmap(env.reset))(jax.random.split(key, batch))
         for i in range(WARMUP // STEPS):

@@ -130,7 +130,8 @@ def run_seed(algo: str, task: str, steps: int, seed: int, every: int, normalize:
 def run_settings(task: str, steps: int, every: int, normalize: bool, env_kwargs: dict
                  ) -> dict:
     """What a seed's record must match for the seed to count as done by this command: the
-    options, and the task's physics (`MjxEnv.settings`) that they and the package give."""
+    options, and the task's physics (`MjxEnv.settings`) that they and the package give (the
+    `--env` arguments count through it alone, as in the experiment runner)."""
     return {"--steps": steps, "--eval-every": every, "--no-normalize": not normalize,
             "--env": env_kwargs, "physics": env_physics(make_env(task, **env_kwargs))}
 
@@ -152,6 +153,8 @@ def done_seeds(directory: pathlib.Path, task: str, seeds: list[int], settings: d
         recorded = {"physics": ran["physics"]} if "physics" in ran else {}  # older: none
         ran = {**ran, "physics": physics_of({"env": ran["--env"], **recorded}, task)}
         for option, value in settings.items():
+            if option == "--env" and settings["physics"] is not None:
+                continue  # the MJX physics it gives counts
             if ran.get(option) != value:
                 raise UsageError(f"seed {seed} in {directory} ran with {option} "
                                  f"{ran.get(option)!r}, this command asks {value!r}: use the "

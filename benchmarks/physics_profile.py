@@ -33,7 +33,7 @@ from benchmarks.device_trace import counted_events, phases_of, trace_of
 from benchmarks.timing import provenance, results_path
 from pgps_jax.cli.run_dir import write_atomic
 from pgps_jax.envs import TASKS, make_env
-from pgps_jax.envs.physics import default_platform
+from pgps_jax.envs.physics import default_platform, resolved
 
 SCOPED_HERE = {"kinematics": smooth, "com_pos": smooth, "crb": smooth, "factor_m": smooth,
                "collision": collision_driver, "make_constraint": constraint,
@@ -88,7 +88,7 @@ def profile_task(task: str, batch: int, steps: int, calls: int) -> dict:
     per_step = calls * steps
     busy = sum(device_ms.values()) / per_step
     return {"task": task, "batch": batch, "steps": steps, "calls": calls,
-            "physics": dataclasses.asdict(env.physics), "n_frames": env.n_frames,
+            "physics": dataclasses.asdict(resolved(env.physics, env.mjx_model)), "n_frames": env.n_frames,
             "wall_ms_per_env_step": wall_ms, "device_busy_ms_per_env_step": busy,
             "device_idle_fraction": max(0.0, 1 - busy / wall_ms),
             "kernels_per_env_step": sum(kernels.values()) / per_step,

@@ -16,8 +16,10 @@ envs and states. The variants:
 - each `--variant NAME=VALUE ...` (`make_env` arguments; on a GPU `matmul_precision=default`
   gives its real TF32 products, `fused_solve=false` MJX's own solve).
 
-    python -m benchmarks.step_agreement --tasks walker2d,ant --variant fused_solve=true
-    python -m benchmarks.step_agreement --variant matmul_precision=default fused_solve=false
+The reference is the task's default env: on a GPU, with the fused solve.
+
+    python -m benchmarks.step_agreement --tasks walker2d,ant --variant fused_solve=false
+    python -m benchmarks.step_agreement --variant matmul_precision=default
 """
 
 import argparse

@@ -252,6 +252,22 @@ def test_the_peers_run_seeds_side_by_side_as_each_alone_and_skip_the_done_ones(t
     assert "--steps 16384" in other.stderr and "asks 8192" in other.stderr
 
 
+def test_a_peer_seed_counts_as_done_on_the_physics_it_ran_on(tmp_path):
+    """A seed recorded before `matmul_precision` existed ran at JAX's default precision: done
+    for a command that asks for that physics (its `--env` arguments count through it), refused
+    for one on today's float32 products."""
+    from benchmarks.peers import done_seeds, run_settings
+    from pgps_jax.cli.errors import UsageError
+    then = run_settings("hopper", 1000, 500, True, {})
+    then["physics"].pop("matmul_precision")
+    (tmp_path / "seed1.json").write_text(json.dumps({"run": then}))
+    as_then = run_settings("hopper", 1000, 500, True, {"matmul_precision": "default"})
+    assert done_seeds(tmp_path, "hopper", [1, 2], as_then) == [1]
+    with pytest.raises(UsageError, match="seed 1 .* ran with physics .*'matmul_precision': "
+                                         "'default'.* asks .*'matmul_precision': 'highest'"):
+        done_seeds(tmp_path, "hopper", [1], run_settings("hopper", 1000, 500, True, {}))
+
+
 def test_the_peers_name_each_seed_that_failed_in_its_own_process(tmp_path):
     """A seed whose process fails (here: every process given `--seed`, through a
     `sitecustomize`) makes the command fail, naming the seed and its error, and leaves no

@@ -91,13 +91,15 @@ def test_the_env_step_with_the_fused_solve_is_the_same_physics():
 
 @pytest.mark.parametrize("task, settings, fused", [
     ("ant", {}, True), ("hopper", {}, True), ("hopper", {"matmul_precision": "default"}, False),
+    ("hopper", {"solver": "cg"}, False),
 ])
 def test_a_gpu_s_env_step_solves_in_a_triton_kernel_by_default(task, settings, fused,
                                                                 monkeypatch):
     """Lowered for CUDA (no GPU needed), the default env step holds the solve as a Triton
     kernel and no device loop: the kernel's code is within what Pallas can lower to Triton,
     also beside the written-out factorisations that a GPU gets (hopper: 6 dofs). With TF32
-    products around it (matmul_precision=default), MJX's own solve stays."""
+    products around it (matmul_precision=default), or for a solver it does not cover, MJX's
+    own solve stays."""
     monkeypatch.setattr(physics, "default_platform", lambda: "gpu")
     env = make_env(task, **settings)
     state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 2))
@@ -105,7 +107,11 @@ def test_a_gpu_s_env_step_solves_in_a_triton_kernel_by_default(task, settings, f
         jax.jit(jax.vmap(env.step)), platforms=["cuda"],
         disabled_checks=[export.DisabledSafetyCheck.custom_call(TRITON_CALL)],
     )(state, jnp.zeros((2, env.action_size))).mlir_module()
-    assert (TRITON_CALL in lowered) == fused and "stablehlo.while" not in lowered
+    assert (TRITON_CALL in lowered) == fused
+    assert fused <= ("stablehlo.while" not in lowered)
+    assert physics.resolved(env.physics, env.mjx_model).fused_solve == fused  # as recorded
+    monkeypatch.setattr(physics, "default_platform", lambda: "cpu")
+    assert not physics.resolved(env.physics, env.mjx_model).fused_solve
 
 
 @pytest.mark.parametrize("settings, named", [

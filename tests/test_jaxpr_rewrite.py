@@ -91,7 +91,8 @@ def test_a_rule_that_fails_leaves_the_traced_code_and_warns_once_per_trace():
 
 def _step(env, unroll_line_search):
     return jax.jit(jax.vmap(functools.partial(physics.step_frames, env.mjx_model, n_frames=2,
-                                              unroll_line_search=unroll_line_search)))
+                                              unroll_line_search=unroll_line_search,
+                                              fused_solve=False)))
 
 
 def _assert_same_physics_without_its_loop(env, looped, unrolled, steps: int):
@@ -212,7 +213,7 @@ def test_unrolled_solver_is_the_same_ant_physics_without_its_loop():
     def step(unroll_solver):
         return jax.jit(jax.vmap(functools.partial(
             physics.step_frames, env.mjx_model, n_frames=2, unroll_line_search=True,
-            unroll_solver=unroll_solver)))
+            unroll_solver=unroll_solver, fused_solve=False)))
     _assert_same_physics_without_its_loop(env, step(False), step(True), steps=3)
 
 

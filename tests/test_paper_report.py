@@ -159,8 +159,10 @@ def test_a_run_is_labelled_with_what_it_changed_from_its_cell_s_configuration():
     cell = Cell("swimmer", "without_ea_guidance", {"ea_guides_pg": False})
     as_run = json.loads(json.dumps(dataclasses.asdict(for_task("swimmer", ea_guides_pg=False))))
 
-    def result(config, env):
-        return {"settings": {"config": config, "env": env}}
+    def result(config, env, task="swimmer"):  # run on today's physics, with `env`'s changes
+        from pgps_jax.envs import make_env
+        return {"settings": {"config": config, "env": env,
+                             "physics": make_env(task, **env).settings()}}
     assert report.run_label(cell.config, result(as_run, {}), cell) == "ours: without_ea_guidance"
     changed = {**as_run, "resample_before_q_filter": True, "actor_hidden": [16]}
     assert report.run_label(cell.config, result(changed, {"iterations": 4}), cell) == (
@@ -171,7 +173,7 @@ def test_a_run_is_labelled_with_what_it_changed_from_its_cell_s_configuration():
     td3 = Cell("hopper", "td3", {}, "td3")
     inert = json.loads(json.dumps(dataclasses.asdict(
         for_task("hopper", "td3", resample_before_q_filter=True))))
-    assert report.run_label(td3.config, result(inert, {}), td3) == "ours: td3"
+    assert report.run_label(td3.config, result(inert, {}, "hopper"), td3) == "ours: td3"
     # a cell saved before the switch existed was resampled
     older = {k: v for k, v in as_run.items() if k != "resample_before_q_filter"}
     assert report.run_label(cell.config, result(older, {}), cell) == (
@@ -180,7 +182,7 @@ def test_a_run_is_labelled_with_what_it_changed_from_its_cell_s_configuration():
 
 def test_a_run_on_an_earlier_physics_of_its_task_is_labelled_with_it():
     """halfcheetah's cells from before the physics was recorded ran with one Newton
-    iteration; a cell that records today's physics shows none."""
+    iteration, at JAX's default precision; a cell that records today's physics shows none."""
     import dataclasses
     from pgps_jax.agent.config import for_task
     from pgps_jax.envs import make_env
@@ -188,7 +190,8 @@ def test_a_run_on_an_earlier_physics_of_its_task_is_labelled_with_it():
     cell = Cell("halfcheetah", "pgps", {})
     config = json.loads(json.dumps(dataclasses.asdict(for_task("halfcheetah"))))
     before = {"settings": {"config": config, "env": {}}}
-    assert report.run_label("pgps", before, cell) == "ours: pgps (iterations=1)"
+    assert report.run_label("pgps", before, cell) == (
+        "ours: pgps (iterations=1, matmul_precision=default)")
     today = {"settings": {"config": config, "env": {},
                           "physics": make_env("halfcheetah").settings()}}
     assert report.run_label("pgps", today, cell) == "ours: pgps"

@@ -49,7 +49,7 @@ SPEED_ONLY = ("write_out_linalg", "unroll_line_search", "unroll_solver", "fused_
 stay equal to float tolerance)."""
 MATMUL_PRECISIONS = ("highest", "default")
 """The precision of the physics' float32 matrix products: float32 ('highest'), or the
-platform's default, which on a recent NVIDIA GPU rounds their inputs to TF32 (10-bit
+platform's default, which on a recent NVIDIA GPU rounds their operands to TF32 (10-bit
 mantissas)."""
 
 
@@ -75,19 +75,20 @@ class Physics:
     on a GPU for models of up to `small_linalg.MAX_SIZE` degrees of freedom."""
     unroll_line_search: Optional[bool] = None
     """The Newton solver's line search without a device loop (`mjx_rewrites`); None: on a
-    GPU."""
+    GPU. Idle where the fused solve runs."""
     unroll_solver: Optional[bool] = None
     """The solver's iterations, when there are several, without a device loop
-    (`mjx_rewrites`); None: on a GPU."""
+    (`mjx_rewrites`); None: on a GPU. Idle where the fused solve runs."""
     matmul_precision: str = "highest"
-    """One of `MATMUL_PRECISIONS`. With 'default' a GPU's next states differ from float32's by
-    up to 1e-2 (relative) after one env step, a thousand times float32's own rounding, at no
-    gain in speed (BENCHMARKS.md "The Newton solve as one kernel")."""
+    """One of `MATMUL_PRECISIONS`. With 'default' an H100's next observations differ from
+    float32's by up to 1.3e-2 (relative) after one env step, 350-1,300 times float32's own
+    rounding, at no gain in speed (BENCHMARKS.md "The Newton solve as one kernel")."""
     fused_solve: Optional[bool] = None
     """The Newton solve as one kernel per env (`mjx_rewrites.fused_solve`; interpreted off a
-    GPU): 1.2-1.7 times shorter env steps on an H100, its states equal to MJX's to float
-    tolerance. None: on a GPU, for a model it covers, with float32 products around it (its
-    own are float32)."""
+    GPU): 1.2-1.7 times shorter env steps on an H100, its states MJX's to float32 rounding
+    (on a CPU; on an H100 checked on the ant and walker2d). None: on a GPU, for a model it
+    covers, with float32 products around it (its own are float32). Where it runs, the
+    line-search and solver-loop rewrites have nothing to rewrite."""
     impl: str = "jax"
     """One of `IMPLS`. Warp's solver is MuJoCo's, not MJX's JAX one: solved to convergence
     the two agree, with a truncated solve their states differ beyond float tolerance. The
@@ -109,17 +110,23 @@ class Physics:
         if self.floor_contacts not in FLOOR_CONTACTS:
             raise ValueError(f"floor_contacts must be one of {', '.join(FLOOR_CONTACTS)}, "
                              f"got {self.floor_contacts!r}")
-        if self.matmul_precision not in MATMUL_PRECISIONS:
-            raise ValueError(f"matmul_precision must be one of {', '.join(MATMUL_PRECISIONS)}, "
-                             f"got {self.matmul_precision!r}")
-        if self.fused_solve and self.matmul_precision != "highest":
-            raise ValueError("fused_solve computes in float32: with matmul_precision="
-                             f"{self.matmul_precision!r} around it the step would mix two "
-                             "precisions; set matmul_precision=highest or fused_solve=false")
+        require_precision(self.matmul_precision, self.fused_solve)
         if self.iterations < 1 or self.ls_iterations < 1:
             raise ValueError(
                 f"iterations and ls_iterations must be >= 1, got {self.iterations}, "
                 f"{self.ls_iterations}")
+
+
+def require_precision(matmul_precision: str, fused_solve: Optional[bool]) -> None:
+    """ValueError unless `matmul_precision` is one of `MATMUL_PRECISIONS` and, with the fused
+    solve (float32) asked for, 'highest'."""
+    if matmul_precision not in MATMUL_PRECISIONS:
+        raise ValueError(f"matmul_precision must be one of {', '.join(MATMUL_PRECISIONS)}, "
+                         f"got {matmul_precision!r}")
+    if fused_solve and matmul_precision != "highest":
+        raise ValueError("fused_solve computes in float32: with matmul_precision="
+                         f"{matmul_precision!r} around it the step would mix two precisions; "
+                         "set matmul_precision=highest or fused_solve=false")
 
 
 def model_defaults(xml: str) -> Physics:
@@ -252,8 +259,8 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
                 unroll_solver: Optional[bool] = None, fused_solve: Optional[bool] = None,
                 matmul_precision: str = "highest") -> mjx.Data:
     """Advances `data` by `n_frames` physics steps with its control held fixed, its matrix
-    products at `matmul_precision` (one of `MATMUL_PRECISIONS`; 'default' leaves them at
-    JAX's `default_matmul_precision` where the step is traced).
+    products at `matmul_precision` (one of `MATMUL_PRECISIONS`, whatever JAX's
+    `default_matmul_precision`).
 
     `write_out_linalg`, `unroll_line_search`, `unroll_solver` and `fused_solve` switch the
     rewrites of `mjx_rewrites` on or off; None gives `Physics`'s defaults for
@@ -268,23 +275,36 @@ def step_frames(model: mjx.Model, data: mjx.Data, n_frames: int,
     The price is compiling `n_frames` copies of `mjx.step`. A Warp model takes `mjx.step`
     as it is.
     """
+    require_precision(matmul_precision, fused_solve)
     on_gpu = default_platform() == "gpu"
-    precision = (contextlib.nullcontext() if matmul_precision == "default"
-                 else jax.default_matmul_precision(matmul_precision))
-    with precision:
+    with jax.default_matmul_precision(matmul_precision):
         if model.impl == mjx.Impl.WARP:
             step = functools.partial(mjx.step, model)
         else:
-            step = _rewritten_step(model, on_gpu, write_out_linalg, unroll_line_search,
-                                   unroll_solver, fused_solve, matmul_precision)
+            switches = _switches(model, on_gpu, write_out_linalg, unroll_line_search,
+                                 unroll_solver, fused_solve, matmul_precision)
+            step = mjx_rewrites.physics_step(model, *switches, on_gpu)
         return jax.lax.fori_loop(0, n_frames, lambda _, d: step(d), data, unroll=on_gpu)
 
 
-def _rewritten_step(model: mjx.Model, on_gpu: bool, write_out_linalg: Optional[bool],
-                    unroll_line_search: Optional[bool], unroll_solver: Optional[bool],
-                    fused_solve: Optional[bool], matmul_precision: str):
-    """MJX's JAX physics step with the `mjx_rewrites` switched on or off (None: `Physics`'s
-    defaults for the platform)."""
+def resolved(physics: Physics, model: mjx.Model) -> Physics:
+    """`physics` with the switches it leaves at None set as `step_frames` sets them for
+    `default_platform()` and `model`: what a step computes with (for the record)."""
+    on_gpu = default_platform() == "gpu"
+    if model.impl == mjx.Impl.WARP:
+        return physics
+    return dataclasses.replace(physics, **dict(zip(
+        ("write_out_linalg", "unroll_line_search", "unroll_solver", "fused_solve"),
+        _switches(model, on_gpu, physics.write_out_linalg, physics.unroll_line_search,
+                  physics.unroll_solver, physics.fused_solve, physics.matmul_precision))))
+
+
+def _switches(model: mjx.Model, on_gpu: bool, write_out_linalg: Optional[bool],
+              unroll_line_search: Optional[bool], unroll_solver: Optional[bool],
+              fused_solve: Optional[bool], matmul_precision: str
+              ) -> tuple[bool, bool, bool, bool]:
+    """The `mjx_rewrites` switches, those left at None set to `Physics`'s defaults for the
+    platform."""
     if write_out_linalg is None:
         write_out_linalg = on_gpu and model.nv <= small_linalg.MAX_SIZE
     if unroll_line_search is None:
@@ -293,5 +313,4 @@ def _rewritten_step(model: mjx.Model, on_gpu: bool, write_out_linalg: Optional[b
         unroll_solver = on_gpu
     if fused_solve is None:
         fused_solve = on_gpu and matmul_precision == "highest" and fused.covers(model)
-    return mjx_rewrites.physics_step(model, write_out_linalg, unroll_line_search,
-                                     unroll_solver, fused_solve, on_gpu)
+    return write_out_linalg, unroll_line_search, unroll_solver, fused_solve

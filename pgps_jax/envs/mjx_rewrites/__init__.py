@@ -7,13 +7,14 @@
   (`Physics.unroll_line_search`).
 - `solver_loop`: the solver's iterations, when there are several, without a device loop
   (`Physics.unroll_solver`).
-- `fused_solve`: the whole constraint solve as one kernel per env (`Physics.fused_solve`,
-  off by default; with it the two rules above have nothing left to rewrite and are not
-  applied).
+- `fused_solve`: the whole constraint solve as one kernel per env (`Physics.fused_solve`;
+  with it the two rules above have nothing left to rewrite and are not applied).
 
-The first three default to on for a GPU (the written-out linear algebra for models of up to
-`small_linalg.MAX_SIZE` degrees of freedom) and off for a CPU, where the library calls are
-faster and a loop's trip costs no pause for the host. On an H200, halfcheetah's physics at
+All default to on for a GPU (the written-out linear algebra for models of up to
+`small_linalg.MAX_SIZE` degrees of freedom; the fused solve for the models it covers, with
+float32 products, which on the five tasks leaves the two loop rules idle) and off for a CPU,
+where the library calls are faster and a loop's trip costs no pause for the host. Measured
+before the fused solve, on an H200, halfcheetah's physics at
 batch 40 takes 1.05 ms per env step with the first two instead of 1.33, and the ant's env step
 (2 solver iterations) at batch 60 7.56 ms with its iterations written out instead of 10.69
 (BENCHMARKS.md). They re-trace `mjx.step` (`rewrite`) and match its code by primitive, shape

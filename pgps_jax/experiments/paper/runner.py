@@ -477,13 +477,14 @@ def physics_of(settings: dict, task: str) -> Optional[dict]:
 def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
                   done: bool = False) -> None:
     """UsageError naming the settings in which the cell of `task` in `directory` differs from
-    `now` (the `--env` arguments count through the physics they give, so that those which
+    `now` (the `--env` arguments count through the MJX physics they give, so that those which
     change only how it is computed, `physics.SPEED_ONLY`, do not; for a `done` cell, the
     devices its seeds were split over and the number of seeds do not count either: a cell
     continued from a checkpoint needs its batch, a result does not, and a done cell can be
     given more seeds)."""
     saved = {**_ADDED_SETTINGS, **saved, "physics": physics_of(saved, task)}
-    ignored = {"config", "env"} | ({"devices", "seeds"} if done else set())
+    ignored = ({"config"} | ({"env"} if now["physics"] is not None else set())
+               | ({"devices", "seeds"} if done else set()))
     differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now" for key in now
               if key not in ignored and saved.get(key) != now[key]]
     saved_config = saved_fields_as_run(saved["config"], _ADDED_CONFIG_FIELDS)
