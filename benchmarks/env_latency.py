@@ -149,7 +149,8 @@ def measure(task: str, fns: dict, alternative: dict, batches: tuple[int, ...]) -
     """Times one task's compiled functions; returns its figures (Brax's env None where it was
     not compiled)."""
     env, key = fns["env"], jax.random.PRNGKey(1)
-    out = {"n_frames": env.n_frames, "dt": env.dt, "physics": dataclasses.asdict(physics.resolved(env.physics, env.mjx_model))}
+    out = {"n_frames": env.n_frames, "dt": env.dt,
+           "physics": dataclasses.asdict(physics.resolved(env.physics, env.mjx_model))}
     for batch in batches:
         state = jax.jit(jax.vmap(env.reset))(jax.random.split(key, batch))
         for i in range(WARMUP // STEPS):

@@ -88,7 +88,8 @@ def profile_task(task: str, batch: int, steps: int, calls: int) -> dict:
     per_step = calls * steps
     busy = sum(device_ms.values()) / per_step
     return {"task": task, "batch": batch, "steps": steps, "calls": calls,
-            "physics": dataclasses.asdict(resolved(env.physics, env.mjx_model)), "n_frames": env.n_frames,
+            "physics": dataclasses.asdict(resolved(env.physics, env.mjx_model)),
+            "n_frames": env.n_frames,
             "wall_ms_per_env_step": wall_ms, "device_busy_ms_per_env_step": busy,
             "device_idle_fraction": max(0.0, 1 - busy / wall_ms),
             "kernels_per_env_step": sum(kernels.values()) / per_step,

@@ -24,6 +24,7 @@ The reference is the task's default env: on a GPU, with the fused solve.
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import sys
 from typing import Optional
@@ -36,7 +37,7 @@ import numpy as np
 from benchmarks.timing import provenance
 from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
-from pgps_jax.envs import TASKS, make_env
+from pgps_jax.envs import TASKS, make_env, physics
 
 BATCH, WARMUP, STEPS = 60, 200, 20
 SOLVER = "mujoco.mjx._src.solver"
@@ -123,7 +124,8 @@ def _one_ulp(step):
 
 
 def measure(task: str, variants: list[dict]) -> dict:
-    """The figures of one task: per variant, largest, median and 95th percentile."""
+    """The figures of one task: per variant, largest, median and 95th percentile; the
+    reference's physics as its step runs it (`physics.resolved`: on a GPU, the fused solve)."""
     env = make_env(task)
     key = jax.random.PRNGKey(1)
     start = jax.jit(jax.vmap(env.reset))(jax.random.split(key, BATCH))
@@ -141,7 +143,8 @@ def measure(task: str, variants: list[dict]) -> dict:
     steps["one_ulp"] = compiled(env, _one_ulp)
     for variant in variants:
         steps[variant_name(variant)] = compiled(make_env(task, **variant))
-    out = {"done_fraction": float(start.done.mean())}
+    out = {"reference_physics": dataclasses.asdict(physics.resolved(env.physics, env.mjx_model)),
+           "done_fraction": float(start.done.mean())}
     for name, step in steps.items():
         d = differences(reference, step, start, key, env.action_size)
         out[name] = {"largest": float(d.max()), "median": float(np.median(d)),
