@@ -25,7 +25,6 @@ is recorded with the results).
 
 import argparse
 import concurrent.futures
-import dataclasses
 import json
 import os
 import time
@@ -37,9 +36,10 @@ from mujoco import mjx
 import numpy as np
 
 from benchmarks.step_agreement import differences, variant_name
+from benchmarks.timing import physics_record
 from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
-from pgps_jax.envs import TASKS, make_env, physics
+from pgps_jax.envs import TASKS, make_env
 
 BATCHES = (10, 60, 1024)
 BRAX_BATCH = 60
@@ -150,7 +150,7 @@ def measure(task: str, fns: dict, alternative: dict, batches: tuple[int, ...]) -
     not compiled)."""
     env, key = fns["env"], jax.random.PRNGKey(1)
     out = {"n_frames": env.n_frames, "dt": env.dt,
-           "physics": dataclasses.asdict(physics.resolved(env.physics, env.mjx_model))}
+           "physics": physics_record(env)}
     for batch in batches:
         state = jax.jit(jax.vmap(env.reset))(jax.random.split(key, batch))
         for i in range(WARMUP // STEPS):

@@ -35,10 +35,11 @@ from typing import Iterator, Optional
 import jax
 import jax.numpy as jnp
 
-from benchmarks.timing import provenance, results_path, timed
+from benchmarks.timing import physics_record, provenance, results_path, timed
 from pgps_jax.agent.config import EvaluationConfig, for_task
 from pgps_jax.agent.pgps import PGPS
 from pgps_jax.cli import run_dir as rundir
+from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.envs import TASKS, make_env
 
 RESULTS = pathlib.Path("benchmarks/results/grid_throughput.json")
@@ -54,11 +55,14 @@ def late_run_steps(config) -> int:
     return max(config.q_filter_start, increments * config.t_interval)
 
 
-def seeds_cost(task: str, seed_counts: list[int], smoke: bool) -> Iterator[dict]:
-    """One late-run generation of S seeds vmapped, for each S in `seed_counts`; yields the
-    task's entry after each S (so a run cut short keeps the counts it measured)."""
+def seeds_cost(task: str, seed_counts: list[int], smoke: bool, env_kwargs: dict
+               ) -> Iterator[dict]:
+    """One late-run generation of S seeds vmapped, for each S in `seed_counts`, on the physics
+    `make_env(task, **env_kwargs)` gives; yields the task's entry after each S (so a run cut
+    short keeps the counts it measured)."""
     config = for_task(task, **(SMOKE if smoke else {}))
-    agent = PGPS(config, make_env(task), EvaluationConfig())
+    env = make_env(task, **env_kwargs)
+    agent = PGPS(config, env, EvaluationConfig())
     late = late_run_steps(config)
     step = jax.jit(jax.vmap(agent.generation_step))
     rows = []
@@ -74,8 +78,9 @@ def seeds_cost(task: str, seed_counts: list[int], smoke: bool) -> Iterator[dict]
         rows.append({"seeds": seeds, "generation_s": generation_s, "compile_and_run_s": compile_s,
                      # against the first (fewest) seed count: 1 by default
                      "cost_per_seed_vs_fewest": generation_s / seeds / fewest})
-        yield {"kind": "seeds", "task": task, "pop_size": config.pop_size, "T": config.t_max,
-               "env_steps_at": late, "rows": list(rows)}
+        yield {"kind": "seeds", "task": task, "physics": physics_record(env),
+               "pop_size": config.pop_size, "T": config.t_max, "env_steps_at": late,
+               "rows": list(rows)}
 
 
 def mps_running() -> bool:
@@ -132,6 +137,9 @@ def main() -> None:
                         help="grid: programs at a time (cells, or parts with --seeds-per-program)")
     parser.add_argument("--seeds-per-program", type=int, default=None, metavar="S",
                         help="grid: each cell's seeds S to a program (default: all in one)")
+    parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
+                        help="seeds: physics settings (`make_env`'s arguments), e.g. "
+                        "fused_solve=false matmul_precision=default")
     parser.add_argument("--steps", type=int, default=1_000_000, help="grid: each cell's budget")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("runs/grid"))
     parser.add_argument("--results", help=f"default: {RESULTS}; with --smoke, the same name in a "
@@ -155,7 +163,8 @@ def main() -> None:
 
     if args.measure == "seeds":
         for task in args.tasks:
-            for measured, entry in enumerate(seeds_cost(task, args.seeds, args.smoke)):
+            entries = seeds_cost(task, args.seeds, args.smoke, env_assignments(args.env))
+            for measured, entry in enumerate(entries):
                 record(entry, replacing_last=measured > 0)
     else:
         record(grid(args.tasks, args.concurrent, args.out, args.steps if not args.smoke else 600,

@@ -24,7 +24,6 @@ The reference is the task's default env: on a GPU, with the fused solve.
 
 import argparse
 import contextlib
-import dataclasses
 import json
 import sys
 from typing import Optional
@@ -34,10 +33,10 @@ from jax._src.lax import lax as lax_internals
 import jax.numpy as jnp
 import numpy as np
 
-from benchmarks.timing import provenance
+from benchmarks.timing import physics_record, provenance
 from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
-from pgps_jax.envs import TASKS, make_env, physics
+from pgps_jax.envs import TASKS, make_env
 
 BATCH, WARMUP, STEPS = 60, 200, 20
 SOLVER = "mujoco.mjx._src.solver"
@@ -143,7 +142,7 @@ def measure(task: str, variants: list[dict]) -> dict:
     steps["one_ulp"] = compiled(env, _one_ulp)
     for variant in variants:
         steps[variant_name(variant)] = compiled(make_env(task, **variant))
-    out = {"reference_physics": dataclasses.asdict(physics.resolved(env.physics, env.mjx_model)),
+    out = {"reference_physics": physics_record(env),
            "done_fraction": float(start.done.mean())}
     for name, step in steps.items():
         d = differences(reference, step, start, key, env.action_size)

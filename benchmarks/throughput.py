@@ -30,13 +30,14 @@ import optax
 
 from benchmarks.env_latency import bare_rollout
 from benchmarks.profile_generation import SMOKE_SIZES
-from benchmarks.timing import provenance, results_path, timed
+from benchmarks.timing import physics_record, provenance, results_path, timed
 from pgps_jax.agent import buffer as replay
 from pgps_jax.agent import cem
 from pgps_jax.agent.config import EvaluationConfig, for_task
 from pgps_jax.agent.pgps import PGPS, episode_limit
 from pgps_jax.agent.rollout import run_episodes
 from pgps_jax.cli import loop
+from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.envs import TASKS, make_env
 
 SMOKE = "--smoke" in sys.argv
@@ -125,9 +126,9 @@ def bench_config(task: str):
     return for_task(task, **(SMOKE_SIZES if SMOKE else {}))
 
 
-def components(task: str) -> dict:
+def components(task: str, env_kwargs: dict) -> dict:
     config = bench_config(task)
-    env = make_env(task)
+    env = make_env(task, **env_kwargs)
     n, t_max = config.pop_size, config.t_max
     agent = PGPS(config, env, TESTS)
     td3, unflatten, policy = agent.td3, agent.actor, agent.policy
@@ -190,7 +191,8 @@ def components(task: str) -> dict:
     env_ms = rollout_s / max(int(lengths.max()), 1) * 1e3
     eval_ms = eval_s / TESTS.steps * 1e3
     return {
-        "task": task, "pop_size": n, "T": t_max, "episode_lengths": lengths.tolist(),
+        "task": task, "physics": physics_record(env), "pop_size": n, "T": t_max,
+        "episode_lengths": lengths.tolist(),
         "init_compile_and_run_s": init_s,
         "generation_ms": {
             "population_rollout": rollout_s * 1e3, "evaluation_30_episodes": eval_s * 1e3,
@@ -214,13 +216,14 @@ def components(task: str) -> dict:
 
 
 # ---------------------------------------------------------------------------- full 1M-step run
-def full_run(task: str, seeds: int) -> dict:
+def full_run(task: str, seeds: int, env_kwargs: dict) -> dict:
     """A whole 1M-step run through the CLI's loop (`pgps_jax.cli.loop`), without file I/O:
     programs compiled ahead of time side by side, a test evaluation begun every 10,000 steps
     inside each generation, the one under way finished and the final state evaluated at the
     end. Wall-clock, compile time, generations (each timed in its two phases, with a wait
     between them, and whether it trained on the augmented loss) and the eval curve of μ."""
-    agent = PGPS(bench_config(task), make_env(task), TESTS)
+    env = make_env(task, **env_kwargs)
+    agent = PGPS(bench_config(task), env, TESTS)
     keys = jax.random.split(jax.random.PRNGKey(0), seeds)
     eval_keys = jax.vmap(lambda s: jax.random.PRNGKey(s + 100))(jnp.arange(seeds))
     if seeds == 1:
@@ -251,7 +254,8 @@ def full_run(task: str, seeds: int) -> dict:
     end = time.perf_counter()
     state, finished = loop.finish(programs, state)
     wall = time.perf_counter() - start
-    return {"task": task, "seeds": seeds, "wall_s_including_compile": wall,
+    return {"task": task, "seeds": seeds, "physics": physics_record(env),
+            "wall_s_including_compile": wall,
             "compile_s": compile_s, "generation_phases_compile_s": phases_compile_s,
             "init_run_s": init_run_s, "generations_s": sum(per_generation["total_s"]),
             "end_s": time.perf_counter() - end, "generations": len(per_generation["total_s"]),
@@ -267,8 +271,12 @@ def main():
     parser.add_argument("--seeds", nargs="*", type=int, default=[1, 5])
     parser.add_argument("--out", help="default: benchmarks/results/throughput.json; with "
                         "--smoke, the same name in a temporary directory")
+    parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
+                        help="physics settings for every task (`make_env`'s arguments), e.g. "
+                        "fused_solve=false matmul_precision=default")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()
+    env_kwargs = env_assignments(args.env)
     args.out = results_path(args.out, "benchmarks/results/throughput.json", args.smoke)
     result = {**provenance(),
               "xla_flags": os.environ.get("XLA_FLAGS", ""),
@@ -282,10 +290,10 @@ def main():
             json.dump(result, f, indent=1)
 
     for task in args.tasks:
-        record("components", components(task))
+        record("components", components(task, env_kwargs))
     for task in args.full_run:
         for seeds in args.seeds:
-            record("full_runs", full_run(task, seeds))
+            record("full_runs", full_run(task, seeds, env_kwargs))
 
 
 if __name__ == "__main__":

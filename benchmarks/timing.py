@@ -1,5 +1,6 @@
 """Timing of jitted functions and the provenance of a measurement, shared by the benchmarks."""
 
+import dataclasses
 import os
 import pathlib
 import subprocess
@@ -59,3 +60,10 @@ def provenance() -> dict:
         commit += "+changes"
     return {"device": jax.devices()[0].device_kind, "jax": jax.__version__, "commit": commit,
             "xla_flags": os.environ.get("XLA_FLAGS", "")}
+
+
+def physics_record(env) -> dict:
+    """The physics `env` steps with, its platform-dependent switches resolved as a step
+    resolves them (`physics.resolved`): what a measurement ran on."""
+    from pgps_jax.envs import physics
+    return dataclasses.asdict(physics.resolved(env.physics, env.mjx_model))
