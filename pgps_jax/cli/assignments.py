@@ -47,7 +47,18 @@ def assignments(pairs: list[str], what: str, hints: dict) -> dict:
 def env_assignments(pairs: list[str], what: str = "--env") -> dict:
     """`make_env` keyword arguments from `name=value` pairs, their values checked as `make_env`
     would check them (a UsageError instead of its ValueError)."""
-    values = assignments(pairs, what, ENV_FIELDS)
+    return checked_env_kwargs(assignments(pairs, what, ENV_FIELDS), what)
+
+
+def checked_env_kwargs(values: dict, what: str) -> dict:
+    """`values` (`make_env` keyword arguments) of the types `ENV_FIELDS` names and valid
+    together, or a UsageError naming `what` ("--env", "physics")."""
+    unknown = sorted(set(values) - set(ENV_FIELDS))
+    if unknown:
+        raise UsageError(f"{what} {unknown[0]!r}: not a physics setting; valid: "
+                         f"{', '.join(ENV_FIELDS)}")
+    values = {name: coerce(f"{what} {name}", value, ENV_FIELDS[name])
+              for name, value in values.items()}
     physics = {name: value for name, value in values.items() if name != "start_pose"}
     try:
         Physics(**physics)

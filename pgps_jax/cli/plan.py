@@ -64,6 +64,12 @@ def _with_new_fields(saved: dict) -> dict:
     return saved
 
 
+def _recorded_physics(task: str, values: dict) -> dict:
+    """The `physics:` node to record for a run of `task` (`run_physics.recorded`)."""
+    from pgps_jax.cli import run_physics
+    return run_physics.recorded(task, values.get("physics") or {})
+
+
 def _comparable(values: dict) -> dict:
     """A run's settings with the PGPSConfig fields that cannot act under the others left out
     (`effective_fields`), for comparing a checkpoint's with the command's."""
@@ -83,6 +89,8 @@ def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
     run, config = from_dict(values)
     if run.resume is False:
         require_training(run, config)
+        values["physics"] = _recorded_physics(run.env, values)
+        run = dataclasses.replace(run, physics=values["physics"])
         directory = rundir.RunDir(run.run_dir)
         directory.ensure_writable()
         lock = directory.lock()
@@ -115,10 +123,14 @@ def _plan_resume(run: RunSettings, config: PGPSConfig, values: dict, overrides: 
         require_training(run, config)
         print(f"resume=true: no checkpoint in {directory.path}; starting a new run there",
               file=sys.stderr)
+        values["physics"] = _recorded_physics(run.env, values)
+        run = dataclasses.replace(run, physics=values["physics"])
         return Plan(run, config, values, directory, lock, None)
 
+    from pgps_jax.cli import run_physics
     step, saved = _checkpointed_config(directory)
     saved = _with_new_fields(saved)
+    saved["physics"] = run_physics.as_run(saved["env"]["name"], saved.get("physics"))
     effective = values
     if by_path:
         explicit = [k for k in override_keys(overrides) if k not in ("resume", "run_dir")]
@@ -127,7 +139,9 @@ def _plan_resume(run: RunSettings, config: PGPSConfig, values: dict, overrides: 
             if explicitly_set(key, explicit):
                 _set(effective, key, value)
         effective["resume"], effective["run_dir"] = run.resume, str(directory.path)
-    diffs = differences(_comparable(saved), _comparable(effective), IDENTITY_KEYS)
+    effective["physics"] = _recorded_physics(effective["env"]["name"], effective)
+    diffs = differences(_comparable(saved), _comparable(effective),
+                        IDENTITY_KEYS + run_physics.IDENTITY_KEYS)
     if diffs:
         raise UsageError(
             f"the checkpoint in {directory.checkpoints} was made with a different "

@@ -143,10 +143,10 @@ def _render(argv: Sequence[str]) -> int:
         raise UsageError(f"env {settings.env!r} has no MuJoCo model to render; "
                          f"render a run of {', '.join(TASK_NAMES)}")
     _import_mujoco()  # before everything that imports mujoco (brax, the envs)
-    from pgps_jax.envs import make_env
     from pgps_jax.agent.evaluation import start_keys
     from pgps_jax.agent.algorithms import make_agent
-    env = make_env(settings.env)
+    from pgps_jax.cli import run_physics
+    env = run_physics.env_for(settings.env, run_physics.as_run(settings.env, settings.physics))
     # the start state of the run's first test episode
     key = start_keys(jax.random.PRNGKey(settings.seed + 100), 1, settings.eval_episodes)[0]
     qpos, rewards, dones = jax.device_get(

@@ -10,7 +10,7 @@ Every error is a `UsageError` whose message names the setting and says what is v
 import dataclasses
 import pathlib
 import typing
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Optional, Sequence
 
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, check_for_algorithm
 from pgps_jax.cli.errors import UsageError
@@ -57,6 +57,9 @@ class RunSettings:
     """False, True (continue `run_dir`) or the path of a run directory to continue."""
     progress: bool
     """Show a progress bar."""
+    physics: Optional[Mapping[str, Any]] = None
+    """The `physics:` node (`make_env`'s arguments; null: the task's own), as recorded for
+    the run (`pgps_jax.cli.run_physics`); None for a run configured before it existed."""
 
     @property
     def evaluation(self) -> EvaluationConfig:
@@ -65,7 +68,8 @@ class RunSettings:
                                 steps=self.eval_steps)
 
 
-_RUN_KEYS = tuple(f.name for f in dataclasses.fields(RunSettings) if f.name not in ("env", "algo"))
+_RUN_KEYS = tuple(f.name for f in dataclasses.fields(RunSettings)
+                  if f.name not in ("env", "algo", "physics"))
 
 
 def pgps_defaults() -> dict:
@@ -90,9 +94,16 @@ def algo_choices() -> list[str]:
     return sorted(p.stem for p in (CONFIG_DIR / "algo").glob("*.yaml"))
 
 
+def physics_fields() -> list[str]:
+    """The `physics.<field>` settings of `configs/config.yaml` (`make_env`'s arguments), read
+    without loading the physics."""
+    import yaml
+    return list(yaml.safe_load((CONFIG_DIR / "config.yaml").read_text())["physics"])
+
+
 def _valid_settings_text() -> str:
     return ("valid settings: env=<task>, algo=<name>, " + ", ".join(_RUN_KEYS)
-            + ", pgps.<field> (run with --cfg job to see them all)")
+            + ", pgps.<field>, physics.<field> (run with --cfg job to see them all)")
 
 
 def parse_overrides(args: Sequence[str]) -> list:
@@ -135,6 +146,11 @@ def check_overrides(args: Sequence[str]) -> None:
             raise UsageError("set the algorithm with algo=<name>, not algo.name "
                              f"(choices: {', '.join(algo_choices())})")
         if key == "pgps":
+            continue
+        if key.startswith("physics."):
+            if key[len("physics."):] not in physics_fields():
+                raise UsageError(f"unknown setting {key!r}; physics.<field> must be one of: "
+                                 f"{', '.join(physics_fields())}")
             continue
         if key.startswith("pgps."):
             field = key[len("pgps."):]
@@ -195,7 +211,7 @@ def pgps_config(values: Mapping[str, Any]) -> PGPSConfig:
 def run_settings(values: Mapping[str, Any]) -> RunSettings:
     """The top-level settings (everything but `pgps:`) as validated RunSettings."""
     known = set(_RUN_KEYS) | {"env", "algo", "pgps"}
-    unknown = sorted(set(values) - known)
+    unknown = sorted(set(values) - known - {"physics"})  # absent from runs before it existed
     if unknown:
         raise UsageError(f"unknown setting {unknown[0]!r}; {_valid_settings_text()}")
     missing = sorted(known - set(values))
@@ -223,7 +239,11 @@ def run_settings(values: Mapping[str, Any]) -> RunSettings:
                      ("eval_steps", 1), ("checkpoint_every", 1), ("keep_checkpoints", 1)):
         if kwargs[key] < low:
             raise UsageError(f"{key}={kwargs[key]} is invalid: must be an integer >= {low}")
-    return RunSettings(env=name, algo=algo, **kwargs)
+    physics = values.get("physics")
+    if physics is not None and not isinstance(physics, Mapping):
+        raise UsageError(f"physics must be a mapping of physics.<field> settings, got "
+                         f"{physics!r}")
+    return RunSettings(env=name, algo=algo, physics=physics, **kwargs)
 
 
 def from_dict(values: Mapping[str, Any]) -> tuple[RunSettings, PGPSConfig]:

@@ -31,7 +31,7 @@ from pgps_jax.agent.base import Agent
 from pgps_jax.cli import loop
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.checkpoint import Checkpoints
-from pgps_jax.cli.errors import RunFailed, UsageError, WriteFailed
+from pgps_jax.cli.errors import RunFailed, WriteFailed
 from pgps_jax.cli.plan import Plan
 from pgps_jax.cli.stop_request import StopRequest
 
@@ -250,11 +250,8 @@ def train(p: Plan) -> str:
     """Runs a Plan to the end of its budget or a stop request: returns "done" or the signal's
     name. Raises NonFiniteError (nothing checkpointed after the last good generation) or
     RunFailed when a file cannot be written (the last good checkpoint kept)."""
-    from pgps_jax.envs import make_env
-    try:
-        env = make_env(p.run.env)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
+    from pgps_jax.cli import run_physics
+    env = run_physics.env_for(p.run.env, p.run.physics)
     p.directory.write_config(p.resolved)
     trainer = Trainer(p, make_agent(p.run.algo, p.config, env, p.run.evaluation))
     failed = None

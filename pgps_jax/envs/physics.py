@@ -85,8 +85,8 @@ class Physics:
     rounding, at no gain in speed (BENCHMARKS.md "The Newton solve as one kernel")."""
     fused_solve: Optional[bool] = None
     """The Newton solve as one kernel per env (`mjx_rewrites.fused_solve`; interpreted off a
-    GPU): 1.2-1.7 times shorter env steps on an H100, its states MJX's to float32 rounding
-    (on a CPU; on an H100 checked on the ant and walker2d). None: on a GPU, for a model it
+    GPU): 1.2-1.9 times shorter env steps on an H100, its states MJX's to float32 rounding
+    (on a CPU, and on an H100 for the five tasks). None: on a GPU, for a model it
     covers, with float32 products around it (its own are float32). Where it runs, the
     line-search and solver-loop rewrites have nothing to rewrite."""
     impl: str = "jax"
