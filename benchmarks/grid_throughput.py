@@ -40,6 +40,7 @@ from pgps_jax.agent.config import EvaluationConfig, for_task
 from pgps_jax.agent.pgps import PGPS
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.assignments import env_assignments
+from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import TASKS, make_env
 
 RESULTS = pathlib.Path("benchmarks/results/grid_throughput.json")
@@ -146,6 +147,13 @@ def main() -> None:
                         "temporary directory")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()
+    if args.measure == "grid" and args.env:
+        parser.error("--env applies to `seeds`; the grid's cells run on the physics the "
+                     "experiment runner gives them")
+    try:
+        env_kwargs = env_assignments(args.env)
+    except UsageError as e:
+        parser.error(str(e))
     args.results = results_path(args.results, str(RESULTS), args.smoke)
     environ = dict(os.environ)
     if args.measure == "grid":  # this process only times: the GPUs' memory is the cells'
@@ -163,8 +171,8 @@ def main() -> None:
 
     if args.measure == "seeds":
         for task in args.tasks:
-            entries = seeds_cost(task, args.seeds, args.smoke, env_assignments(args.env))
-            for measured, entry in enumerate(entries):
+            for measured, entry in enumerate(seeds_cost(task, args.seeds, args.smoke,
+                                                        env_kwargs)):
                 record(entry, replacing_last=measured > 0)
     else:
         record(grid(args.tasks, args.concurrent, args.out, args.steps if not args.smoke else 600,

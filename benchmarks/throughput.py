@@ -38,6 +38,7 @@ from pgps_jax.agent.pgps import PGPS, episode_limit
 from pgps_jax.agent.rollout import run_episodes
 from pgps_jax.cli import loop
 from pgps_jax.cli.assignments import env_assignments
+from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import TASKS, make_env
 
 SMOKE = "--smoke" in sys.argv
@@ -276,7 +277,10 @@ def main():
                         "fused_solve=false matmul_precision=default")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()
-    env_kwargs = env_assignments(args.env)
+    try:
+        env_kwargs = env_assignments(args.env)
+    except UsageError as e:
+        parser.error(str(e))
     args.out = results_path(args.out, "benchmarks/results/throughput.json", args.smoke)
     result = {**provenance(),
               "xla_flags": os.environ.get("XLA_FLAGS", ""),

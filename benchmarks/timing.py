@@ -63,7 +63,8 @@ def provenance() -> dict:
 
 
 def physics_record(env) -> dict:
-    """The physics `env` steps with, its platform-dependent switches resolved as a step
-    resolves them (`physics.resolved`): what a measurement ran on."""
+    """The physics `env` steps with, its start pose and its platform-dependent switches
+    resolved as a step resolves them (`physics.resolved`): what a measurement ran on."""
     from pgps_jax.envs import physics
-    return dataclasses.asdict(physics.resolved(env.physics, env.mjx_model))
+    return {"start_pose": env.start_pose,
+            **dataclasses.asdict(physics.resolved(env.physics, env.mjx_model))}

@@ -47,17 +47,18 @@ def assignments(pairs: list[str], what: str, hints: dict) -> dict:
 def env_assignments(pairs: list[str], what: str = "--env") -> dict:
     """`make_env` keyword arguments from `name=value` pairs, their values checked as `make_env`
     would check them (a UsageError instead of its ValueError)."""
-    return checked_env_kwargs(assignments(pairs, what, ENV_FIELDS), what)
+    return checked_env_kwargs(assignments(pairs, what, ENV_FIELDS), f"{what} ")
 
 
-def checked_env_kwargs(values: dict, what: str) -> dict:
+def checked_env_kwargs(values: dict, prefix: str) -> dict:
     """`values` (`make_env` keyword arguments) of the types `ENV_FIELDS` names and valid
-    together, or a UsageError naming `what` ("--env", "physics")."""
+    together, or a UsageError naming the setting as typed, `prefix` + name ("--env iterations",
+    "physics.iterations")."""
     unknown = sorted(set(values) - set(ENV_FIELDS))
     if unknown:
-        raise UsageError(f"{what} {unknown[0]!r}: not a physics setting; valid: "
+        raise UsageError(f"{prefix}{unknown[0]}: not a physics setting; valid: "
                          f"{', '.join(ENV_FIELDS)}")
-    values = {name: coerce(f"{what} {name}", value, ENV_FIELDS[name])
+    values = {name: coerce(f"{prefix}{name}", value, ENV_FIELDS[name])
               for name, value in values.items()}
     physics = {name: value for name, value in values.items() if name != "start_pose"}
     try:
@@ -65,5 +66,5 @@ def checked_env_kwargs(values: dict, what: str) -> dict:
         if "start_pose" in values:
             check_start_pose(values["start_pose"])
     except ValueError as e:
-        raise UsageError(f"{what}: {e}") from None
+        raise UsageError(f"{prefix.rstrip(' .')}: {e}") from None
     return values

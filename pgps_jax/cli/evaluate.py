@@ -63,7 +63,7 @@ def _evaluate(argv: Sequence[str]) -> int:
     import jax  # only once the arguments are known to be good
 
     from pgps_jax.cli import run_physics
-    env = run_physics.env_for(settings.env, run_physics.as_run(settings.env, settings.physics))
+    env = run_physics.run_env(args["run"], settings.env, settings.physics)
     key_seed = args.get("seed", settings.seed + 100)
     evaluation = settings.evaluation
     if "episodes" in args:

@@ -70,6 +70,25 @@ def _recorded_physics(task: str, values: dict) -> dict:
     return run_physics.recorded(task, values.get("physics") or {})
 
 
+def _physics_differences(directory: rundir.RunDir, saved: dict, effective: dict,
+                         overrides: Sequence[str]) -> list[str]:
+    """The `physics.*` settings in which `effective`'s recorded physics differs from the
+    checkpoint's; a checkpoint of a MuJoCo task that does not record its physics is refused
+    unless the command states it (which the resumed run then records)."""
+    from pgps_jax.cli import run_physics
+    task = effective["env"]["name"]
+    if saved.get("physics") is None:
+        stated = any(k == "physics" or k.startswith("physics.")
+                     for k in override_keys(overrides))
+        if task in run_physics.TASKS and not stated:
+            raise UsageError(f"the checkpoint in {directory.checkpoints} "
+                             f"{run_physics.UNRECORDED}. Resume with the physics.* settings "
+                             f"it ran with; the resumed run records them.")
+        return []
+    return differences({"physics": run_physics.recorded(task, saved["physics"])}, effective,
+                       run_physics.IDENTITY_KEYS)
+
+
 def _comparable(values: dict) -> dict:
     """A run's settings with the PGPSConfig fields that cannot act under the others left out
     (`effective_fields`), for comparing a checkpoint's with the command's."""
@@ -84,6 +103,8 @@ def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
       settings in IDENTITY_KEYS must equal the checkpoint's.
     resume=<dir>: continue <dir> with its checkpointed settings; settings given on the command
       line replace them, and must not change any in IDENTITY_KEYS.
+    Either way the physics the run simulates is recorded and must equal the checkpoint's
+    (`run_physics.IDENTITY_KEYS`).
     """
     values = copy.deepcopy(dict(values))
     run, config = from_dict(values)
@@ -127,10 +148,8 @@ def _plan_resume(run: RunSettings, config: PGPSConfig, values: dict, overrides: 
         run = dataclasses.replace(run, physics=values["physics"])
         return Plan(run, config, values, directory, lock, None)
 
-    from pgps_jax.cli import run_physics
     step, saved = _checkpointed_config(directory)
     saved = _with_new_fields(saved)
-    saved["physics"] = run_physics.as_run(saved["env"]["name"], saved.get("physics"))
     effective = values
     if by_path:
         explicit = [k for k in override_keys(overrides) if k not in ("resume", "run_dir")]
@@ -139,9 +158,10 @@ def _plan_resume(run: RunSettings, config: PGPSConfig, values: dict, overrides: 
             if explicitly_set(key, explicit):
                 _set(effective, key, value)
         effective["resume"], effective["run_dir"] = run.resume, str(directory.path)
-    effective["physics"] = _recorded_physics(effective["env"]["name"], effective)
-    diffs = differences(_comparable(saved), _comparable(effective),
-                        IDENTITY_KEYS + run_physics.IDENTITY_KEYS)
+    diffs = differences(_comparable(saved), _comparable(effective), IDENTITY_KEYS)
+    if not diffs:  # the same task: the same physics too
+        effective["physics"] = _recorded_physics(effective["env"]["name"], effective)
+        diffs = _physics_differences(directory, saved, effective, overrides)
     if diffs:
         raise UsageError(
             f"the checkpoint in {directory.checkpoints} was made with a different "

@@ -146,7 +146,7 @@ def _render(argv: Sequence[str]) -> int:
     from pgps_jax.agent.evaluation import start_keys
     from pgps_jax.agent.algorithms import make_agent
     from pgps_jax.cli import run_physics
-    env = run_physics.env_for(settings.env, run_physics.as_run(settings.env, settings.physics))
+    env = run_physics.run_env(args["run"], settings.env, settings.physics)
     # the start state of the run's first test episode
     key = start_keys(jax.random.PRNGKey(settings.seed + 100), 1, settings.eval_episodes)[0]
     qpos, rewards, dones = jax.device_get(

@@ -58,8 +58,9 @@ class RunSettings:
     progress: bool
     """Show a progress bar."""
     physics: Optional[Mapping[str, Any]] = None
-    """The `physics:` node (`make_env`'s arguments; null: the task's own), as recorded for
-    the run (`pgps_jax.cli.run_physics`); None for a run configured before it existed."""
+    """The `physics:` node (`make_env`'s arguments; null: the task's own) as configured; a
+    planned run's holds every field as recorded (`pgps_jax.cli.run_physics.recorded`); None
+    for a saved run from before the record."""
 
     @property
     def evaluation(self) -> EvaluationConfig:

@@ -92,8 +92,7 @@ class Physics:
     impl: str = "jax"
     """One of `IMPLS`. Warp's solver is MuJoCo's, not MJX's JAX one: solved to convergence
     the two agree, with a truncated solve their states differ beyond float tolerance. The
-    `mjx_rewrites` apply to JAX's alone. Warp steps envs but cannot train yet
-    (`cli.assignments.env_assignments`)."""
+    `mjx_rewrites` apply to JAX's alone. The agents train on either (`envs.env_batches`)."""
 
     def model_settings(self) -> dict:
         """The fields that define the simulated physics (all but `SPEED_ONLY`)."""

@@ -8,7 +8,7 @@ the warm start's choice, the Gauss and constraint costs, the Hessian M + Jᵀ·d
 and its Cholesky factor (its own, in masked tile updates), MJX's bracketing line search and
 stopping tests, so that its results agree with MJX's to float tolerance. It covers Newton's
 method with pyramidal cones and no friction loss (`refuse_unsupported`); off a GPU the program
-runs interpreted, for the tests. On an H100 it makes the env step 1.2-1.7 times shorter, its
+runs interpreted, for the tests. On an H100 it makes the env step 1.2-1.9 times shorter, its
 next states within float32's rounding of MJX's step with float32 products (BENCHMARKS.md "The
 Newton solve as one kernel"); `Physics` uses it by default on a GPU.
 
