@@ -19,7 +19,6 @@ Writes `benchmarks/results/physics_profile.json`.
 import argparse
 import collections
 import contextlib
-import dataclasses
 import json
 import tempfile
 import time
@@ -30,10 +29,10 @@ from mujoco.mjx._src import collision_driver, constraint, smooth
 
 from benchmarks.env_latency import env_rollout
 from benchmarks.device_trace import counted_events, phases_of, trace_of
-from benchmarks.timing import provenance, results_path
+from benchmarks.timing import physics_record, provenance, results_path
 from pgps_jax.cli.run_dir import write_atomic
 from pgps_jax.envs import TASKS, make_env
-from pgps_jax.envs.physics import default_platform, resolved
+from pgps_jax.envs.physics import default_platform
 
 SCOPED_HERE = {"kinematics": smooth, "com_pos": smooth, "crb": smooth, "factor_m": smooth,
                "collision": collision_driver, "make_constraint": constraint,
@@ -88,7 +87,7 @@ def profile_task(task: str, batch: int, steps: int, calls: int) -> dict:
     per_step = calls * steps
     busy = sum(device_ms.values()) / per_step
     return {"task": task, "batch": batch, "steps": steps, "calls": calls,
-            "physics": dataclasses.asdict(resolved(env.physics, env.mjx_model)),
+            "physics": physics_record(env),
             "n_frames": env.n_frames,
             "wall_ms_per_env_step": wall_ms, "device_busy_ms_per_env_step": busy,
             "device_idle_fraction": max(0.0, 1 - busy / wall_ms),

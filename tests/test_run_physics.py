@@ -4,7 +4,7 @@ command line, the record in the run's configuration and what the trainer, `evalu
 
 import pytest
 
-from pgps_jax.cli import evaluate, plan as planning, trainer
+from pgps_jax.cli import evaluate, plan as planning, run_physics, trainer
 from pgps_jax.cli.assignments import ENV_FIELDS, checked_env_kwargs
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.cli.run_config import check_overrides, from_dict, physics_fields
@@ -120,8 +120,8 @@ def test_a_point_mass_run_from_before_the_record_resumes(monkeypatch, tmp_path):
 
 
 def test_a_recorded_run_resumes_on_its_physics(monkeypatch, tmp_path):
-    recorded = composed("env=hopper", "physics.iterations=2", "physics.fused_solve=false")
-    _checkpointed(monkeypatch, "hopper", recorded["physics"])
+    node = composed("env=hopper", "physics.iterations=2", "physics.fused_solve=false")["physics"]
+    _checkpointed(monkeypatch, "hopper", run_physics.recorded("hopper", node))
     with pytest.raises(UsageError) as err:
         _resumed(tmp_path, "resume=true")
     assert "physics.iterations: checkpoint 2, now 1" in str(err.value)
@@ -138,7 +138,7 @@ def test_a_recorded_run_resumes_on_its_physics(monkeypatch, tmp_path):
 
 
 def test_another_task_is_the_one_difference_named(monkeypatch, tmp_path):
-    _checkpointed(monkeypatch, "hopper", composed("env=hopper")["physics"])
+    _checkpointed(monkeypatch, "hopper", run_physics.recorded("hopper", {}))
     for how in ("resume=true", f"resume={tmp_path}"):
         with pytest.raises(UsageError) as err:
             _resumed(tmp_path, how, "env=point", task="point")

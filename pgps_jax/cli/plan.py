@@ -70,23 +70,28 @@ def _recorded_physics(task: str, values: dict) -> dict:
     return run_physics.recorded(task, values.get("physics") or {})
 
 
+def _recording_physics(run: RunSettings, values: dict) -> RunSettings:
+    """`run` of a new run, its `physics:` node replaced in it and in `values` by the one to
+    record."""
+    values["physics"] = _recorded_physics(run.env, values)
+    return dataclasses.replace(run, physics=values["physics"])
+
+
 def _physics_differences(directory: rundir.RunDir, saved: dict, effective: dict,
                          overrides: Sequence[str]) -> list[str]:
     """The `physics.*` settings in which `effective`'s recorded physics differs from the
     checkpoint's; a checkpoint of a MuJoCo task that does not record its physics is refused
     unless the command states it (which the resumed run then records)."""
     from pgps_jax.cli import run_physics
-    task = effective["env"]["name"]
     if saved.get("physics") is None:
         stated = any(k == "physics" or k.startswith("physics.")
                      for k in override_keys(overrides))
-        if task in run_physics.TASKS and not stated:
+        if effective["env"]["name"] in run_physics.TASKS and not stated:
             raise UsageError(f"the checkpoint in {directory.checkpoints} "
                              f"{run_physics.UNRECORDED}. Resume with the physics.* settings "
                              f"it ran with; the resumed run records them.")
         return []
-    return differences({"physics": run_physics.recorded(task, saved["physics"])}, effective,
-                       run_physics.IDENTITY_KEYS)
+    return differences(saved, effective, run_physics.IDENTITY_KEYS)
 
 
 def _comparable(values: dict) -> dict:
@@ -110,8 +115,7 @@ def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
     run, config = from_dict(values)
     if run.resume is False:
         require_training(run, config)
-        values["physics"] = _recorded_physics(run.env, values)
-        run = dataclasses.replace(run, physics=values["physics"])
+        run = _recording_physics(run, values)
         directory = rundir.RunDir(run.run_dir)
         directory.ensure_writable()
         lock = directory.lock()
@@ -144,8 +148,7 @@ def _plan_resume(run: RunSettings, config: PGPSConfig, values: dict, overrides: 
         require_training(run, config)
         print(f"resume=true: no checkpoint in {directory.path}; starting a new run there",
               file=sys.stderr)
-        values["physics"] = _recorded_physics(run.env, values)
-        run = dataclasses.replace(run, physics=values["physics"])
+        run = _recording_physics(run, values)
         return Plan(run, config, values, directory, lock, None)
 
     step, saved = _checkpointed_config(directory)
