@@ -47,6 +47,12 @@ REDUCED_CELL = Budget(steps=600, seeds=2, checkpoint_every=2,
 """The experiment runner's budget of a cell of two seeds of REDUCED."""
 
 
+REDUCED_PHYSICS = {"ant": ("physics.integrator=euler",)}
+"""The reduced runs' physics where a task's own is slow to compile on a CPU: the ant's frames
+on Euler's integrator, one forward pass each instead of RK4's four (`test_envs` plays its own
+RK4 step)."""
+
+
 def reduced(task: str, *overrides: str) -> list[str]:
     """`env=<task>` with REDUCED, `overrides` replacing settings of the same key."""
     merged = {a.split("=", 1)[0]: a for a in (f"env={task}", *REDUCED)}
@@ -88,7 +94,8 @@ def task_runs(tmp_path_factory):
         if task not in made:
             work = tmp_path_factory.mktemp(f"run_{task}")
             run_dir = work / "run"
-            result = run_here("train", reduced(task, f"run_dir={run_dir}"), work)
+            result = run_here("train", reduced(task, f"run_dir={run_dir}",
+                                              *REDUCED_PHYSICS.get(task, ())), work)
             assert result.returncode == 0, result.stderr[-3000:]
             made[task] = run_dir, result
         return made[task]

@@ -25,7 +25,7 @@ from pgps_jax.cli.run_config import CONFIG_DIR
 from pgps_jax.envs import make_env
 
 from conftest import reduced
-from train_cli import read_csv, run_here, tiny
+from train_cli import cli_env, read_csv, run_here, tiny
 
 SMALL = dict(pop_size=4, top_k=2, actor_hidden=(32, 32), critic_hidden=(32, 32), t_init=20,
              buffer_size=5000, t_max=40, batch_size=32, update_unroll=2)
@@ -219,13 +219,16 @@ def test_the_peers_evaluate_on_their_training_steps_until_they_reach_the_budget(
     assert evaluations("sac", 1_000_000, 50_000) == (21, 50_048)  # 20 after the first
 
 
-def test_the_peers_run_seeds_side_by_side_as_each_alone_and_skip_the_done_ones(tmp_path):
+def test_the_peers_run_seeds_side_by_side_as_each_alone_and_skip_the_done_ones(tmp_path,
+                                                                             cache):
     """`benchmarks.peers --concurrent 2`: each seed in a process of its own writes the curve it
-    writes alone; a seed with its record is not run again; result.json gathers the records."""
+    writes alone; a seed with its record is not run again; result.json gathers the records.
+    (The processes share the session's compilation cache: the second run loads the first's
+    programs.)"""
     command = [sys.executable, "-m", "benchmarks.peers", "--algo", "ppo", "--task", "point",
                "--steps", "16384", "--eval-every", "8192", "--out", str(tmp_path)]
     root = pathlib.Path(__file__).parents[1]
-    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    env = cli_env(cache)
     side = subprocess.run(command + ["--seeds", "2", "--concurrent", "2"], cwd=root, env=env,
                           capture_output=True, text=True)
     assert side.returncode == 0, side.stderr

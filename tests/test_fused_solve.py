@@ -52,8 +52,10 @@ def _states_before_solving(env, batch: int = 16, steps: int = 25):
 def test_the_fused_solve_is_mjx_solve(task, iterations):
     """ant (108 constraint rows padded to 128, 14 dofs to 16; its 3 iterations, and one,
     where the line search's result is the step's) and hopper (one iteration): qacc, the
-    constraint force and each row's force as MJX's solve gives them, from its warm start."""
-    env = make_env(task)
+    constraint force and each row's force as MJX's solve gives them, from its warm start
+    (states reached with Euler's integrator, one forward pass per frame: the solve is the
+    same for RK4's)."""
+    env = make_env(task, integrator="euler")
     m, data = env.mjx_model, _states_before_solving(env)
     m = m.tree_replace({"opt.iterations": iterations})
     # reference accelerations pushed about, so that rows turn active and inactive along the
@@ -76,11 +78,11 @@ def test_the_fused_solve_is_mjx_solve(task, iterations):
 
 
 def test_the_env_step_with_the_fused_solve_is_the_same_physics():
-    """The ant's env step (5 frames of RK4) with `fused_solve=true` plays the same states as
-    without over three steps."""
+    """The ant's env step (5 frames, each one forward pass with Euler's integrator: RK4's four
+    solve alike) with `fused_solve=true` plays the same states as without over three steps."""
     states = []
     for fused in (False, True):
-        env = make_env("ant", fused_solve=fused)
+        env = make_env("ant", fused_solve=fused, integrator="euler")
         state = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 3))
         actions = jax.random.uniform(jax.random.PRNGKey(1), (3, 3, env.action_size),
                                      minval=-1, maxval=1)
