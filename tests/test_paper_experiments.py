@@ -36,6 +36,12 @@ class Stop(Exception):
     pass
 
 
+def _timeless(result: dict) -> dict:
+    """`result` without its wall-clock seconds (those of its parts included)."""
+    clock = {"wall_s": 0, "wall_split_s": {}}
+    return {**result, **clock, "parts": [{**p, **clock} for p in result.get("parts", [])]}
+
+
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):
     out = tmp_path_factory.mktemp("paper")
@@ -48,6 +54,9 @@ def test_a_cell_writes_the_authors_csv_per_seed_and_the_final_returns(uninterrup
     out, (result,) = uninterrupted
     cell = out / "figure4" / "hopper" / "pgps"
     assert result["seeds"] == [1, 2] and min(result["env_steps"]) >= BUDGET.steps
+    split = result["wall_split_s"]
+    assert list(split) == list(runner.WALL_SPLIT) and min(split.values()) > 0
+    assert sum(split.values()) < result["wall_s"]
     for seed in (1, 2):
         curves = {actor: read_csv(cell / runner.seed_file(seed, actor))
                   for actor in ("", "td3", "elite")}
@@ -353,7 +362,7 @@ def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninter
     resumed = runner.run_cell(HOPPER, directory, BUDGET,
                               lambda generation, steps: generations.append(generation))
     assert generations[0] == 3  # from the checkpoint of generation 2
-    assert {**resumed, "wall_s": 0} == {**result, "wall_s": 0}
+    assert _timeless(resumed) == _timeless(result)
     for seed in (1, 2):
         for name in (runner.seed_file(seed), runner.seed_file(seed, "td3"),
                      runner.seed_file(seed, "elite"), f"seed{seed}_generations.csv"):
@@ -384,7 +393,25 @@ def test_a_signal_stops_a_cell_with_a_checkpoint_of_the_generation_it_stopped_at
     resumed = runner.run_cell(HOPPER, directory, rarely,
                               lambda generation, steps: generations.append(generation))
     assert generations[0] == 4
-    assert {**resumed, "wall_s": 0} == {**result, "wall_s": 0}
+    assert _timeless(resumed) == _timeless(result)
+
+
+def test_checkpoints_follow_the_clock_where_no_generations_are_given(uninterrupted, tmp_path):
+    """`Budget.checkpoint_every_s` alone: a checkpoint after every generation that ends that
+    long after the last one (here: every generation), and the same result."""
+    out, (result,) = uninterrupted
+    directory = tmp_path / "cell"
+    by_clock = dataclasses.replace(BUDGET, checkpoint_every=None, checkpoint_every_s=1e-9)
+    latest = []
+
+    def latest_checkpoint(generation, steps):
+        written = [int(p.name) for p in (directory / runner.CHECKPOINTS).glob("*")
+                   if p.name.isdigit()]
+        latest.append(max(written, default=None))
+    clocked = runner.run_cell(HOPPER, directory, by_clock, latest_checkpoint)
+    assert latest == list(range(1, len(latest) + 1)) and len(latest) == result["generations"]
+    assert _timeless(clocked) == _timeless(result)
+    assert clocked["wall_split_s"]["checkpoints"] > 0
 
 
 def test_a_signal_in_a_cell_s_last_generation_stops_after_its_result(uninterrupted,
@@ -397,7 +424,7 @@ def test_a_signal_in_a_cell_s_last_generation_stops_after_its_result(uninterrupt
     with pytest.raises(KeyboardInterrupt):  # the command runs no further cell
         runner.run_cell(HOPPER, tmp_path / "cell", BUDGET, signal_at_budget)
     done = json.loads((tmp_path / "cell" / runner.RESULT).read_text())
-    assert {**done, "wall_s": 0} == {**result, "wall_s": 0}
+    assert _timeless(done) == _timeless(result)
 
 
 def test_a_done_cell_given_more_seeds_runs_only_those(uninterrupted, tmp_path):
@@ -497,6 +524,9 @@ def test_a_cell_in_parts_keys_its_seeds_as_the_whole_cell_and_merges_their_resul
     cell, whole = (o / "figure4" / "hopper" / "pgps" for o in (out, whole_out))
     assert result["seeds"] == [1, 2] and [p["seeds"] for p in result["parts"]] == [[1], [2]]
     assert result["wall_s"] == pytest.approx(sum(p["wall_s"] for p in result["parts"]))
+    for key in runner.WALL_SPLIT:
+        assert result["wall_split_s"][key] == pytest.approx(
+            sum(p["wall_split_s"][key] for p in result["parts"]))
     assert min(result["env_steps"]) >= BUDGET.steps
     firsts = []
     for seed in (1, 2):
@@ -537,8 +567,7 @@ def test_a_part_whose_checkpoint_was_lost_runs_again_from_its_start(in_parts, tm
     result = runner.run_cell(HOPPER, cell, IN_PARTS,
                              lambda generation, steps: generations.append(generation), first)
     assert generations[0] == 1
-    assert {**result, "wall_s": 0} == {
-        **json.loads((done / "result_seeds1-1.json").read_text()), "wall_s": 0}
+    assert _timeless(result) == _timeless(json.loads((done / "result_seeds1-1.json").read_text()))
     for name in (runner.seed_file(1), runner.seed_file(1, "td3"), "seed1_generations.csv"):
         assert (cell / name).read_bytes() == (done / name).read_bytes(), name
     assert (cell / "seed1_generations.csv").read_bytes() != stale
@@ -572,8 +601,7 @@ def test_cells_side_by_side_compute_what_they_compute_in_turn(in_parts, tmp_path
         # a child sees one GPU, and GPU kernels need not repeat bit for bit across processes
         assert beside["seeds"] == result["seeds"] and np.all(np.isfinite(beside["final"]["mu"]))
         return
-    timeless = lambda r: {**r, "wall_s": 0, "parts": [{**p, "wall_s": 0} for p in r["parts"]]}
-    assert timeless(beside) == timeless(result)
+    assert _timeless(beside) == _timeless(result)
     for seed in (1, 2):
         for name in (runner.seed_file(seed), runner.seed_file(seed, "td3"),
                      f"seed{seed}_generations.csv"):
@@ -700,6 +728,9 @@ def test_the_grids_hold_the_paper_s_cells():
     (["figure4", "--steps", "0"], ["--steps must be a positive integer"]),
     (["figure4", "--concurrent", "0"], ["--concurrent must be a positive integer"]),
     (["figure4", "--seeds-per-program", "0"], ["--seeds-per-program must be a positive integer"]),
+    (["figure4", "--checkpoint-every", "0"], ["--checkpoint-every must be a positive integer"]),
+    (["figure4", "--checkpoint-every-s", "0"],
+     ["--checkpoint-every-s must be a positive number of seconds"]),
     (["figure4", "--env", "contacts=all"], ["--env 'contacts=all'", "floor_contacts"]),
     (["figure4", "--tasks", "ant", "--env", "floor_contacts=all"],
      ["--env: floor_contacts must be one of model, gym, got 'all'"]),

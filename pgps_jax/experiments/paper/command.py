@@ -184,7 +184,11 @@ def main(argv=None) -> int:
                         help="seeds vmapped in one program (default: all of a cell's); a "
                              "cell of more runs in parts, side by side with --concurrent")
     parser.add_argument("--checkpoint-every", type=int, default=Budget.checkpoint_every,
-                        help="generations between checkpoints")
+                        help="generations between checkpoints, besides --checkpoint-every-s "
+                             "(default: by time alone)")
+    parser.add_argument("--checkpoint-every-s", type=float,
+                        default=Budget.checkpoint_every_s, metavar="SECONDS",
+                        help="seconds between checkpoints (default %(default)g)")
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="PGPSConfig fields replacing every cell's")
     parser.add_argument("--eval", nargs="*", default=[], metavar="FIELD=VALUE",
@@ -217,6 +221,8 @@ def main(argv=None) -> int:
         for name in ("steps", "seeds", "checkpoint_every", "concurrent", "seeds_per_program"):
             if getattr(args, name) is not None and getattr(args, name) <= 0:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer")
+        if not args.checkpoint_every_s > 0:
+            raise UsageError("--checkpoint-every-s must be a positive number of seconds")
         try:
             evaluation = EvaluationConfig(**assignments(args.eval, "--eval",
                                                          field_types(EvaluationConfig)))
@@ -224,6 +230,7 @@ def main(argv=None) -> int:
             raise UsageError(str(e)) from None
         budget = Budget(steps=args.steps, seeds=args.seeds, evaluation=evaluation,
                         checkpoint_every=args.checkpoint_every,
+                        checkpoint_every_s=args.checkpoint_every_s,
                         seeds_per_program=args.seeds_per_program,
                         overrides=tuple(assignments(args.set, "--set",
                                                      field_types(PGPSConfig)).items()),

@@ -25,9 +25,11 @@ the return of every slot of the population (Figure 6: the Q-filtered slots again
 sampled ones); `generation_times.csv`: per generation of the program, the seconds of its
 play and learn phases and its rollout's sequential steps (the most of its seeds');
 `result.json` once the cell is done (the final evaluation of every evaluated actor on fresh
-start states PRNGKey(k + 10,000), the settings, the wall-clock and the device); and
-`checkpoints/` while it runs, written every `Budget.checkpoint_every` generations and when
-SIGINT or SIGTERM stops it (after the generation under way). A cell is continued or
+start states PRNGKey(k + 10,000), the settings, the wall-clock, its parts outside the
+generations, `WALL_SPLIT`, and the device); and
+`checkpoints/` while it runs, written every `Budget.checkpoint_every_s` seconds (and every
+`Budget.checkpoint_every` generations where given) and when SIGINT or SIGTERM stops it (after
+the generation under way). A cell is continued or
 counted as done only under the settings it was started with, its number of seeds aside.
 
 A cell's seeds can also run in parts (`Budget.seeds_per_program`): each part a program of its
@@ -76,6 +78,11 @@ sequential env steps, the most that one of the program's seeds played."""
 FILES_EVERY_S = 60.0
 """Seconds between writes of a running cell's curves and per-generation files besides those
 at its checkpoints: a cell cut off between checkpoints keeps its curves to within this."""
+WALL_SPLIT = ("compile", "checkpoints", "files", "final_evaluation")
+"""The parts of a cell's wall-clock outside its generations (`result.json`'s `wall_split_s`,
+seconds): compiling the programs until the first generation can start (a fresh cell's `init`
+run included), writing checkpoints, writing the curves and per-generation files, and the final
+evaluation. The generations' own seconds are in `GENERATION_TIMES`."""
 FINAL_KEY_OFFSET = 10_000
 """Seed k's final evaluation starts from PRNGKey(k + FINAL_KEY_OFFSET): states no evaluation
 during training saw."""
@@ -90,8 +97,12 @@ class Budget:
     seeds: int = 5
     """Seeds 1..seeds."""
     evaluation: EvaluationConfig = EvaluationConfig()
-    checkpoint_every: int = 10
-    """Generations between checkpoints."""
+    checkpoint_every: Optional[int] = None
+    """Generations between checkpoints, besides `checkpoint_every_s`; None: by time alone."""
+    checkpoint_every_s: float = 120.0
+    """Seconds between checkpoints: a cut-off cell loses at most this much of its run (and the
+    generation under way). A checkpoint writes the whole replay buffer, on walker2d 168 MB per
+    seed (0.3–0.5 s on a 2-core CPU)."""
     overrides: tuple = ()
     """(field, value) pairs of PGPSConfig replacing every cell's (e.g. reduced sizes)."""
     env: tuple = ()
@@ -245,6 +256,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             generation, elapsed = 0, 0.0
             curves = {actor: [[] for _ in range(batch)] for actor in agent.evaluated}
             populations, times = [[] for _ in range(batch)], []
+            split = dict.fromkeys(WALL_SPLIT, 0.0)
         else:
             meta = checkpoints.latest_meta()[1]
             _require_same(directory, meta["settings"], settings, cell.task)
@@ -258,19 +270,30 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             curves, populations = meta["curves"], meta["populations"]
             times = meta.get("times", [])
             elapsed = meta["elapsed_s"]
+            split = {**dict.fromkeys(WALL_SPLIT, 0.0), **meta.get("wall_split_s", {})}
             programs = loop.Programs.compile(agent, keys, eval_keys, seeds=True,
                                              sharding=sharding, restored=shapes,
                                              waiting=True)
+        programs.futures["play"].result(), programs.futures["learn"].result()  # as generation 1
+        split["compile"] += time.perf_counter() - start
         steps = np.asarray(jax.device_get(state.total_steps))
         at_budget = AtBudget.read(at_budget_file, part.count, generation)
         at_budget.record(generation, steps, state, agent, budget, at_budget_file)
-        written, saved = time.perf_counter(), generation
+        written = checkpointed = time.perf_counter()
+        saved = generation
+
+        def write_files():
+            began = time.perf_counter()
+            _write_files(directory, curves, populations, times, agent, budget, part)
+            split["files"] += time.perf_counter() - began
 
         def save():
+            began = time.perf_counter()
             checkpoints.save(generation, state, {
                 "settings": settings, "curves": curves, "populations": populations,
-                "times": times, "elapsed_s": elapsed + time.perf_counter() - start})
-            _write_files(directory, curves, populations, times, agent, budget, part)
+                "times": times, "elapsed_s": elapsed + began - start, "wall_split_s": split})
+            split["checkpoints"] += time.perf_counter() - began
+            write_files()
             return generation, time.perf_counter()
         with StopRequest() as stop:
             while steps[:part.count].min() < budget.steps and stop.requested is None:
@@ -287,10 +310,13 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                         np.asarray(m[key][seed]).item() for key in population_keys])
                 steps = np.where(active, m["gen/total_steps"], steps)
                 at_budget.record(generation, steps, state, agent, budget, at_budget_file)
-                if generation % budget.checkpoint_every == 0:
+                if (time.perf_counter() - checkpointed >= budget.checkpoint_every_s
+                        or budget.checkpoint_every
+                        and generation % budget.checkpoint_every == 0):
                     saved, written = save()
+                    checkpointed = written
                 elif time.perf_counter() - written >= FILES_EVERY_S:
-                    _write_files(directory, curves, populations, times, agent, budget, part)
+                    write_files()
                     written = time.perf_counter()
                 if on_generation is not None:
                     on_generation(generation, steps[:part.count])
@@ -298,22 +324,24 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                 if saved != generation:
                     save()
                 raise KeyboardInterrupt  # the command says how to continue
+            began = time.perf_counter()
             final_keys = jax.device_put(
                 jax.vmap(jax.random.PRNGKey)(numbers + FINAL_KEY_OFFSET), sharding)
             state, finished = loop.finish(programs, state, final_keys,
                                           at_budget.actors_of(state, agent, sharding))
+            split["final_evaluation"] += time.perf_counter() - began
     finally:
         checkpoints.close()
     for seed in np.flatnonzero(finished.unfinished_active):  # played from its start
         _add_evaluation(curves, finished.unfinished, seed, int(finished.unfinished_step[seed]))
-    _write_files(directory, curves, populations, times, agent, budget, part)
+    write_files()
     result = {"task": cell.task, "config": cell.config, "algo": cell.algo,
               "overrides": dict(cell.overrides),
               "steps": budget.steps, "seeds": list(part.numbers),
               "env_steps": at_budget.steps.tolist(), "generations": generation,
               "final": {actor: np.asarray(finished.final[f"eval/{actor}_mean"])
                         [:part.count].tolist() for actor in agent.evaluated},
-              "wall_s": elapsed + time.perf_counter() - start,
+              "wall_s": elapsed + time.perf_counter() - start, "wall_split_s": split,
               "device": f"{mesh.size} × {jax.devices()[0].device_kind}", "settings": settings}
     rundir.write_atomic(directory / part_file(RESULT, part), json.dumps(result, indent=1).encode())
     shutil.rmtree(checkpoints.directory, ignore_errors=True)  # the result is all it keeps
@@ -365,9 +393,12 @@ def merge_parts(directory: pathlib.Path, budget: Budget, settings: dict, task: s
               "final": {actor: [v for d in done for v in d["final"][actor]]
                         for actor in done[0]["final"]},
               "wall_s": sum(d["wall_s"] for d in done),
+              "wall_split_s": {key: sum(d.get("wall_split_s", {}).get(key, 0.0) for d in done)
+                               for key in WALL_SPLIT},
               "settings": {**done[0]["settings"], "seeds": budget.seeds},
               "parts": [part for d in done for part in d.get("parts", [
-                  {key: d[key] for key in ("seeds", "generations", "wall_s", "device")}])]}
+                  {key: d[key] for key in ("seeds", "generations", "wall_s", "wall_split_s",
+                                           "device") if key in d}])]}
     rundir.write_atomic(directory / RESULT, json.dumps(merged, indent=1).encode())
 
 
