@@ -2,6 +2,7 @@
 tests' and their CLI subprocesses'), and one reduced training run per MuJoCo task, made on
 first use."""
 
+import math
 import os
 import pathlib
 
@@ -28,6 +29,7 @@ if jax.default_backend() != "cpu":
     jax.config.update("jax_default_matmul_precision", "highest")
 
 REDUCED = ("seed=1", "total_steps=600", "eval_every=200", "checkpoint_every=2",
+           "checkpoint_every_s=null",
            "progress=false", "pgps.pop_size=2", "pgps.top_k=1", "pgps.actor_hidden=[16]",
            "pgps.critic_hidden=[16]", "pgps.batch_size=16", "pgps.buffer_size=2000",
            "pgps.warmup_steps=200", "pgps.t_init=20", "pgps.t_max=40", "pgps.t_interval=400",
@@ -35,16 +37,18 @@ REDUCED = ("seed=1", "total_steps=600", "eval_every=200", "checkpoint_every=2",
            "pgps.ss2_size=16", "eval_episodes=2", "eval_steps=50")
 """A PGPS of 2 actors with small networks, episodes of 20-40 steps, a 200-step warm-up and
 a 600-step budget: a few generations on real MJX physics in seconds once compiled; the
-Q-filter starts at 400 steps, so it runs too."""
+Q-filter starts at 400 steps, so it runs too. Checkpoints every two generations, not by the
+clock (the tests know which generations have one)."""
 REDUCED_PGPS = dict(pop_size=2, top_k=1, actor_hidden=(16,), critic_hidden=(16,),
                     batch_size=16, buffer_size=2000, warmup_steps=200, t_init=20, t_max=40,
                     t_interval=400, q_filter_start=400, sample_ratio=4, ss1_size=8,
                     ss2_size=16)
 """REDUCED's pgps.* settings as PGPSConfig fields."""
-REDUCED_CELL = Budget(steps=600, seeds=2, checkpoint_every=2,
+REDUCED_CELL = Budget(steps=600, seeds=2, checkpoint_every=2, checkpoint_every_s=math.inf,
                       overrides=tuple(REDUCED_PGPS.items()),
                       evaluation=EvaluationConfig(every=200, episodes=2, steps=50))
-"""The experiment runner's budget of a cell of two seeds of REDUCED."""
+"""The experiment runner's budget of a cell of two seeds of REDUCED, checkpointed every two
+generations and never by the clock (the tests know which generations have one)."""
 
 
 REDUCED_PHYSICS = {"ant": ("physics.integrator=euler",)}
@@ -87,7 +91,8 @@ HOPPER_RUN = pytest.mark.xdist_group("hopper_run")
 @pytest.fixture(scope="session")
 def task_runs(tmp_path_factory):
     """`task_runs(task)`: (run directory, CompletedProcess) of an uninterrupted reduced run of
-    `task` through the training command (in this process), trained on first use."""
+    `task` through the training command (in this process; the ant on `REDUCED_PHYSICS`),
+    trained on first use."""
     made = {}
 
     def get(task: str):

@@ -358,11 +358,17 @@ def test_a_cut_off_cell_continues_from_its_checkpoint_to_the_same_result(uninter
                       + columns(agent)[1:])
         with pytest.raises(UsageError, match="older runner .*per-generation columns"):
             runner.run_cell(HOPPER, directory, BUDGET)
+    checkpoints = Checkpoints(directory / runner.CHECKPOINTS)
+    before = checkpoints.latest_meta()[1]["wall_split_s"]
+    checkpoints.close()
     generations = []
     resumed = runner.run_cell(HOPPER, directory, BUDGET,
                               lambda generation, steps: generations.append(generation))
     assert generations[0] == 3  # from the checkpoint of generation 2
     assert _timeless(resumed) == _timeless(result)
+    split = resumed["wall_split_s"]  # the cut-off run's seconds carried on
+    assert all(split[key] >= before[key] for key in runner.WALL_SPLIT)
+    assert split["compile"] > before["compile"] > 0
     for seed in (1, 2):
         for name in (runner.seed_file(seed), runner.seed_file(seed, "td3"),
                      runner.seed_file(seed, "elite"), f"seed{seed}_generations.csv"):
@@ -375,7 +381,7 @@ def test_a_signal_stops_a_cell_with_a_checkpoint_of_the_generation_it_stopped_at
         uninterrupted, tmp_path, sig):
     out, (result,) = uninterrupted
     directory = tmp_path / "cell"
-    rarely = dataclasses.replace(BUDGET, checkpoint_every=100)  # none but the stop's
+    rarely = dataclasses.replace(BUDGET, checkpoint_every=None)  # none but the stop's
 
     def signal_at_third(generation, steps):
         if generation == 3:
@@ -440,9 +446,13 @@ def test_a_done_cell_given_more_seeds_runs_only_those(uninterrupted, tmp_path):
     drawn = report._ours(cell)[0]  # a seed under way is not drawn with the done ones
     assert drawn.returns.shape == curves.returns.shape == (2, len(curves.steps))
     np.testing.assert_array_equal(drawn.returns, curves.returns)
+    older = json.loads((cell / runner.RESULT).read_text())  # a result from before wall_split_s
+    del older["wall_split_s"]
+    (cell / runner.RESULT).write_text(json.dumps(older))
     (merged,) = command.run("figure4", tmp_path, three, tasks=["hopper"], configs=["pgps"],
                             progress=False)
     assert merged["seeds"] == [1, 2, 3] and merged["settings"]["seeds"] == 3
+    assert "wall_split_s" not in merged and "wall_split_s" not in merged["parts"][0]
     assert [part["seeds"] for part in merged["parts"]] == [[1, 2], [3]]
     assert {actor: values[:2] for actor, values in merged["final"].items()} == result["final"]
     assert all((cell / name).read_bytes() == content for name, content in before.items())

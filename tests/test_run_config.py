@@ -27,6 +27,7 @@ def test_defaults_are_the_issue_defaults():
     run, config = from_dict(composed())
     assert (run.env, run.seed, run.total_steps, run.eval_every) == ("halfcheetah", 0, 1_000_000, 10_000)
     assert (run.keep_checkpoints, run.resume, run.run_dir) == (3, False, "runs/halfcheetah/seed0")
+    assert (run.checkpoint_every, run.checkpoint_every_s) == (None, 120.0)  # by the clock
     assert config == for_task("halfcheetah")
 
 
@@ -98,10 +99,14 @@ def test_pgps_config_coerces_yaml_types():
     ("total_steps", 0, ["total_steps=0", ">= 1"]),
     ("eval_every", "often", ["eval_every", "integer"]),
     ("resume", 3, ["resume"]),
+    ("checkpoint_every", 0, ["checkpoint_every=0", ">= 1"]),
+    ("checkpoint_every_s", 0, ["checkpoint_every_s=0", "positive number of seconds"]),
+    ({"checkpoint_every": None, "checkpoint_every_s": None}, None,
+     ["both null", "only at its end"]),
 ])
 def test_bad_run_settings_name_the_key(key, value, words):
     values = composed("env=point")
-    values[key] = value
+    values.update(key if isinstance(key, dict) else {key: value})
     with pytest.raises(UsageError) as err:
         from_dict(values)
     for word in words:

@@ -1,6 +1,7 @@
 """The training command on each of the paper's five MuJoCo tasks (real MJX physics, a reduced
-PGPS): it trains, checkpoints, saves the actors, and `evaluate` reproduces its last
-evaluation."""
+PGPS; the ant's frames on Euler's integrator, `conftest.REDUCED_PHYSICS`): it trains,
+checkpoints, saves the actors, and `evaluate` reproduces its last evaluation on the physics
+the run recorded."""
 
 import numpy as np
 import pytest

@@ -201,6 +201,40 @@ def test_a_checkpoint_from_before_a_new_setting_resumes_under_its_default(refere
     assert "done:" in result.stdout
 
 
+def test_a_checkpoint_from_before_the_clock_resumes_by_directory_on_generations(reference,
+                                                                                 tmp_path):
+    """A checkpoint whose configuration has no checkpoint_every_s (written before it) continues,
+    by directory, as it was checkpointed: every checkpoint_every generations, not by the
+    clock."""
+    from pgps_jax.cli.plan import plan
+    run_dir, _ = reference
+    older = tmp_path / "older"
+    shutil.copytree(run_dir, older)
+    for path in (older / rundir.CHECKPOINTS).glob("*/meta/metadata"):
+        meta = json.loads(path.read_text())
+        del meta["config"]["checkpoint_every_s"]
+        path.write_text(json.dumps(meta))
+    overrides = [f"resume={older}"]
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        values = OmegaConf.to_container(compose("config", overrides=overrides), resolve=True)
+    planned = plan(values, overrides)
+    planned.lock.release()
+    assert (planned.run.checkpoint_every, planned.run.checkpoint_every_s) == (3, None)
+
+
+def test_checkpoints_follow_the_clock_where_no_generations_are_given(cache, tmp_path):
+    """checkpoint_every=null: a checkpoint after every generation that ends checkpoint_every_s
+    after the last one (here: every generation). In a process of its own: in this one, a
+    later run of the same settings would reuse its compiled programs."""
+    run_dir = tmp_path / "clock"
+    result = run("train", tiny(f"run_dir={run_dir}", "checkpoint_every=null",
+                               "checkpoint_every_s=1e-9", "keep_checkpoints=100"),
+                 cache, tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    _, metrics = read_csv(run_dir / rundir.METRICS)
+    assert checkpoint_steps(run_dir) == list(range(1, len(metrics) + 1))
+
+
 def test_resume_by_directory_refuses_other_explicit_settings(reference, tmp_path):
     run_dir, _ = reference
     before = _snapshot(run_dir)

@@ -118,10 +118,12 @@ def test_batches_join_slice_and_choose_env_by_env(impl):
 
 
 def test_a_cell_trains_on_warp(tmp_path):
-    """The experiment runner's tiny hopper cell on Warp, saving checkpoints on the way: two
+    """The experiment runner's tiny hopper cell on Warp, saving checkpoints of Warp's env
+    states on the way (the cell spent time writing them; they are removed once it is done): two
     seeds whose episodes end apart, so that they reach the budget in different generations
-    (one waits for the other), with finite returns and Warp recorded as the cell's
-    physics. Half the reduced budget: on a CPU each of Warp's env steps takes about 0.15 s."""
+    (one waits for the other), with finite returns and Warp recorded as the cell's physics.
+    Half the reduced budget (the Q-filter, from 400 steps, does not start): on a CPU each of
+    Warp's env steps takes about 0.15 s."""
     budget = dataclasses.replace(REDUCED_CELL, steps=REDUCED_CELL.steps // 2,
                                  env=(("impl", "warp"),))
     (result,) = command.run("figure4", tmp_path, budget, tasks=["hopper"], configs=["pgps"],
@@ -129,6 +131,7 @@ def test_a_cell_trains_on_warp(tmp_path):
     assert min(result["env_steps"]) >= budget.steps
     assert np.isfinite(result["final"]["mu"]).all()
     assert result["settings"]["physics"]["impl"] == "warp"
+    assert result["wall_split_s"]["checkpoints"] > 0
     cell = tmp_path / "figure4" / "hopper" / "pgps"
     generations = [len((cell / f"seed{seed}_generations.csv").read_text().splitlines())
                    for seed in (1, 2)]

@@ -15,8 +15,9 @@ import time
 REPO = pathlib.Path(__file__).resolve().parent.parent
 
 TINY = ("env=point", "seed=1", "total_steps=3000", "eval_every=400", "checkpoint_every=3",
-        "progress=false")
-"""A run of ~25 short generations of a tiny PGPS on the point mass."""
+        "checkpoint_every_s=null", "progress=false")
+"""A run of ~25 short generations of a tiny PGPS on the point mass, checkpointed every three
+generations and not by the clock."""
 
 
 

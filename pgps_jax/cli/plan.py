@@ -51,11 +51,13 @@ def _checkpointed_config(directory: rundir.RunDir) -> tuple[int, dict]:
 
 def _with_new_fields(saved: dict) -> dict:
     """A checkpoint's configuration with the settings added since it was written set to the
-    behaviour from before them: PGPS, the PGPSConfig fields' defaults, or their values
+    behaviour from before them: PGPS, checkpoints by generations alone, the PGPSConfig fields'
+    defaults, or their values
     before they were added where the default differs (`VALUES_BEFORE_ADDED`; such a
     checkpoint resumes by directory, or with resume=true and the old value set)."""
     saved = copy.deepcopy(saved)
     saved.setdefault("algo", {"name": "pgps"})
+    saved.setdefault("checkpoint_every_s", None)  # checkpoints by generations alone
     defaults = {f.name: VALUES_BEFORE_ADDED.get(f.name, f.default)
                 for f in dataclasses.fields(PGPSConfig)}
     pgps = saved.setdefault("pgps", {})

@@ -45,8 +45,13 @@ class RunSettings:
     """Deterministic test episodes per evaluated actor."""
     eval_steps: int
     """Step limit of a test episode."""
-    checkpoint_every: int
-    """Generations between checkpoints (one is also written at the end and on Ctrl-C)."""
+    checkpoint_every: Optional[int]
+    """Generations between checkpoints, besides `checkpoint_every_s`; None: by time alone (one
+    is also written at the end and on Ctrl-C)."""
+    checkpoint_every_s: Optional[float]
+    """Seconds of the run between checkpoints: an interrupted run loses at most this much (and
+    the generation under way). A checkpoint writes the whole replay buffer. None: by
+    generations alone (runs from before this setting)."""
     keep_checkpoints: int
     """Most recent checkpoints kept."""
     output_dir: str
@@ -238,8 +243,15 @@ def run_settings(values: Mapping[str, Any]) -> RunSettings:
             kwargs[key] = coerce(key, value, hints[key])
     for key, low in (("seed", 0), ("total_steps", 1), ("eval_every", 1), ("eval_episodes", 1),
                      ("eval_steps", 1), ("checkpoint_every", 1), ("keep_checkpoints", 1)):
-        if kwargs[key] < low:
+        if kwargs[key] is not None and kwargs[key] < low:
             raise UsageError(f"{key}={kwargs[key]} is invalid: must be an integer >= {low}")
+    every_s = kwargs["checkpoint_every_s"]
+    if every_s is not None and not every_s > 0:
+        raise UsageError(f"checkpoint_every_s={every_s} is invalid: must be a positive number "
+                         "of seconds, or null")
+    if every_s is None and kwargs["checkpoint_every"] is None:
+        raise UsageError("checkpoint_every and checkpoint_every_s are both null: set one, or "
+                         "the run checkpoints only at its end")
     physics = values.get("physics")
     if physics is not None and not isinstance(physics, Mapping):
         raise UsageError(f"physics must be a mapping of physics.<field> settings, got "

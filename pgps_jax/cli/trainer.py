@@ -10,7 +10,8 @@ tests the actors of the state that generation starts from, and is written, under
 step count, by the generation in which its episodes have ended. After the last generation,
 the evaluation still under way is played to its end from its start and the final state is
 evaluated, both by the agent's `evaluate` (`loop.finish`). Checkpoints are written every
-`checkpoint_every` generations, at the end and on SIGINT / SIGTERM. The programs compile
+`checkpoint_every_s` seconds (and every `checkpoint_every` generations where set), at the end
+and on SIGINT / SIGTERM. The programs compile
 ahead of time side by side (`compile_ahead`): `init` with the two phases, then `evaluate` in
 the background while the run trains. Nothing here runs inside jit. The run directory's
 contents are listed in `pgps_jax.cli.run_dir`.
@@ -82,7 +83,7 @@ class Trainer:
         self.bar = None
         self.generation = self.total = 0
         self.elapsed_before = 0.0
-        self._clock = time.perf_counter()
+        self._clock = self.checkpointed = time.perf_counter()
         self.last_saved: Optional[int] = None
         self.eval_rows: list[dict] = []
 
@@ -166,7 +167,9 @@ class Trainer:
         done = self.total >= budget
         if done:
             state = self.final_evaluation(state)
-        if self.generation % self.run.checkpoint_every == 0 or done:
+        every, every_s = self.run.checkpoint_every, self.run.checkpoint_every_s
+        if (done or every and self.generation % every == 0
+                or every_s is not None and time.perf_counter() - self.checkpointed >= every_s):
             self.save(state)
         return state
 
@@ -227,7 +230,7 @@ class Trainer:
                 "logs": {name: log.size() for name, log in self.logs.items()},
                 "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         self.checkpoints.save(self.generation, state, meta)
-        self.last_saved = self.generation
+        self.last_saved, self.checkpointed = self.generation, time.perf_counter()
         self.save_actors(state)
 
     def save_actors(self, state):

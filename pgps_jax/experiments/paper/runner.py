@@ -26,11 +26,11 @@ sampled ones); `generation_times.csv`: per generation of the program, the second
 play and learn phases and its rollout's sequential steps (the most of its seeds');
 `result.json` once the cell is done (the final evaluation of every evaluated actor on fresh
 start states PRNGKey(k + 10,000), the settings, the wall-clock, its parts outside the
-generations, `WALL_SPLIT`, and the device); and
-`checkpoints/` while it runs, written every `Budget.checkpoint_every_s` seconds (and every
-`Budget.checkpoint_every` generations where given) and when SIGINT or SIGTERM stops it (after
-the generation under way). A cell is continued or
-counted as done only under the settings it was started with, its number of seeds aside.
+generations, `WALL_SPLIT`, and the device); and `checkpoints/` while it runs, written every
+`Budget.checkpoint_every_s` seconds (and every `Budget.checkpoint_every` generations where
+given) and when SIGINT or SIGTERM stops it (after the generation under way). A cell is
+continued or counted as done only under the settings it was started with, its number of seeds
+aside.
 
 A cell's seeds can also run in parts (`Budget.seeds_per_program`): each part a program of its
 own, its seeds keyed as in the whole cell, so the parts can run in turn or side by side in
@@ -80,9 +80,10 @@ FILES_EVERY_S = 60.0
 at its checkpoints: a cell cut off between checkpoints keeps its curves to within this."""
 WALL_SPLIT = ("compile", "checkpoints", "files", "final_evaluation")
 """The parts of a cell's wall-clock outside its generations (`result.json`'s `wall_split_s`,
-seconds): compiling the programs until the first generation can start (a fresh cell's `init`
-run included), writing checkpoints, writing the curves and per-generation files, and the final
-evaluation. The generations' own seconds are in `GENERATION_TIMES`."""
+seconds): until the first generation can start (compiling the programs, and running a fresh
+cell's `init` or reading a continued cell's checkpoint), writing checkpoints, writing the
+curves and per-generation files, and the final evaluation. The generations' own seconds are in
+`GENERATION_TIMES`."""
 FINAL_KEY_OFFSET = 10_000
 """Seed k's final evaluation starts from PRNGKey(k + FINAL_KEY_OFFSET): states no evaluation
 during training saw."""
@@ -102,7 +103,7 @@ class Budget:
     checkpoint_every_s: float = 120.0
     """Seconds between checkpoints: a cut-off cell loses at most this much of its run (and the
     generation under way). A checkpoint writes the whole replay buffer, on walker2d 168 MB per
-    seed (0.3–0.5 s on a 2-core CPU)."""
+    seed (0.4–1.0 s on a 2-core CPU)."""
     overrides: tuple = ()
     """(field, value) pairs of PGPSConfig replacing every cell's (e.g. reduced sizes)."""
     env: tuple = ()
@@ -275,8 +276,8 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                                              sharding=sharding, restored=shapes,
                                              waiting=True)
         programs.futures["play"].result(), programs.futures["learn"].result()  # as generation 1
-        split["compile"] += time.perf_counter() - start
         steps = np.asarray(jax.device_get(state.total_steps))
+        split["compile"] += time.perf_counter() - start
         at_budget = AtBudget.read(at_budget_file, part.count, generation)
         at_budget.record(generation, steps, state, agent, budget, at_budget_file)
         written = checkpointed = time.perf_counter()
@@ -393,12 +394,15 @@ def merge_parts(directory: pathlib.Path, budget: Budget, settings: dict, task: s
               "final": {actor: [v for d in done for v in d["final"][actor]]
                         for actor in done[0]["final"]},
               "wall_s": sum(d["wall_s"] for d in done),
-              "wall_split_s": {key: sum(d.get("wall_split_s", {}).get(key, 0.0) for d in done)
-                               for key in WALL_SPLIT},
               "settings": {**done[0]["settings"], "seeds": budget.seeds},
               "parts": [part for d in done for part in d.get("parts", [
                   {key: d[key] for key in ("seeds", "generations", "wall_s", "wall_split_s",
                                            "device") if key in d}])]}
+    if all("wall_split_s" in d for d in done):  # results from before it have none
+        merged["wall_split_s"] = {key: sum(d["wall_split_s"][key] for d in done)
+                                  for key in WALL_SPLIT}
+    else:
+        merged.pop("wall_split_s", None)
     rundir.write_atomic(directory / RESULT, json.dumps(merged, indent=1).encode())
 
 
