@@ -99,8 +99,9 @@ def test_pgps_config_coerces_yaml_types():
     ("total_steps", 0, ["total_steps=0", ">= 1"]),
     ("eval_every", "often", ["eval_every", "integer"]),
     ("resume", 3, ["resume"]),
-    ("checkpoint_every", 0, ["checkpoint_every=0", ">= 1"]),
+    ("checkpoint_every", 0, ["checkpoint_every=0", ">= 1, or null"]),
     ("checkpoint_every_s", 0, ["checkpoint_every_s=0", "positive number of seconds"]),
+    ("checkpoint_every_s", float("inf"), ["checkpoint_every_s=inf", "or null"]),
     ({"checkpoint_every": None, "checkpoint_every_s": None}, None,
      ["both null", "only at its end"]),
 ])

@@ -205,21 +205,29 @@ def test_a_checkpoint_from_before_the_clock_resumes_by_directory_on_generations(
                                                                                  tmp_path):
     """A checkpoint whose configuration has no checkpoint_every_s (written before it) continues,
     by directory, as it was checkpointed: every checkpoint_every generations, not by the
-    clock."""
+    clock; `evaluate` reads such a run."""
     from pgps_jax.cli.plan import plan
     run_dir, _ = reference
     older = tmp_path / "older"
     shutil.copytree(run_dir, older)
-    for path in (older / rundir.CHECKPOINTS).glob("*/meta/metadata"):
+    metas = list((older / rundir.CHECKPOINTS).glob("*/meta/metadata"))
+    assert len(metas) == 3
+    for path in metas:
         meta = json.loads(path.read_text())
-        del meta["config"]["checkpoint_every_s"]
+        meta["config"].pop("checkpoint_every_s")
         path.write_text(json.dumps(meta))
+    config = (older / rundir.CONFIG).read_text()
+    (older / rundir.CONFIG).write_text(
+        "\n".join(line for line in config.splitlines() if "checkpoint_every_s" not in line))
     overrides = [f"resume={older}"]
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         values = OmegaConf.to_container(compose("config", overrides=overrides), resolve=True)
     planned = plan(values, overrides)
     planned.lock.release()
     assert (planned.run.checkpoint_every, planned.run.checkpoint_every_s) == (3, None)
+    out = tmp_path / "eval.csv"  # evaluate reads the run's configuration as it was saved
+    evaluated = run_here("evaluate", [f"run={older}", f"out={out}"], tmp_path)
+    assert evaluated.returncode == 0, evaluated.stderr[-2000:]
 
 
 def test_checkpoints_follow_the_clock_where_no_generations_are_given(cache, tmp_path):

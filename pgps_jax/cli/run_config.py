@@ -8,6 +8,7 @@ Every error is a `UsageError` whose message names the setting and says what is v
 """
 
 import dataclasses
+import math
 import pathlib
 import typing
 from typing import Any, Iterable, Mapping, Optional, Sequence
@@ -214,8 +215,15 @@ def pgps_config(values: Mapping[str, Any]) -> PGPSConfig:
         raise UsageError(f"invalid pgps setting: {e}") from None
 
 
+RUN_VALUES_BEFORE_ADDED = {"checkpoint_every_s": None}
+"""Top-level settings added since runs were first saved, at the behaviour from before them: a
+saved run's configuration without `checkpoint_every_s` checkpointed by generations alone."""
+
+
 def run_settings(values: Mapping[str, Any]) -> RunSettings:
-    """The top-level settings (everything but `pgps:`) as validated RunSettings."""
+    """The top-level settings (everything but `pgps:`) as validated RunSettings; those of
+    `RUN_VALUES_BEFORE_ADDED` that a saved run lacks take their value from before them."""
+    values = {**RUN_VALUES_BEFORE_ADDED, **values}
     known = set(_RUN_KEYS) | {"env", "algo", "pgps"}
     unknown = sorted(set(values) - known - {"physics"})  # absent from runs before it existed
     if unknown:
@@ -244,9 +252,10 @@ def run_settings(values: Mapping[str, Any]) -> RunSettings:
     for key, low in (("seed", 0), ("total_steps", 1), ("eval_every", 1), ("eval_episodes", 1),
                      ("eval_steps", 1), ("checkpoint_every", 1), ("keep_checkpoints", 1)):
         if kwargs[key] is not None and kwargs[key] < low:
-            raise UsageError(f"{key}={kwargs[key]} is invalid: must be an integer >= {low}")
+            raise UsageError(f"{key}={kwargs[key]} is invalid: must be an integer >= {low}"
+                             + (", or null" if key == "checkpoint_every" else ""))
     every_s = kwargs["checkpoint_every_s"]
-    if every_s is not None and not every_s > 0:
+    if every_s is not None and not 0 < every_s < math.inf:
         raise UsageError(f"checkpoint_every_s={every_s} is invalid: must be a positive number "
                          "of seconds, or null")
     if every_s is None and kwargs["checkpoint_every"] is None:

@@ -83,7 +83,7 @@ class Trainer:
         self.bar = None
         self.generation = self.total = 0
         self.elapsed_before = 0.0
-        self._clock = self.checkpointed = time.perf_counter()
+        self._clock = self.checkpointed = time.perf_counter()  # again once started
         self.last_saved: Optional[int] = None
         self.eval_rows: list[dict] = []
 
@@ -105,6 +105,7 @@ class Trainer:
             state = self.programs["init"](seed_key, eval_key)
             self.total = int(state.total_steps)
             self.bar.update(min(self.total, self.run.total_steps))
+            self.checkpointed = time.perf_counter()  # the clock counts training, not compiling
             return state
         shapes = loop.state_shapes(self.agent, seed_key, eval_key)
         step, state, meta = self.checkpoints.restore_latest(shapes)
@@ -125,6 +126,7 @@ class Trainer:
         self._open_bar()
         tqdm.write(f"resumed {self.dir.path} at generation {self.generation} "
                    f"({self.total:,} env steps)")
+        self.checkpointed = time.perf_counter()
         return state
 
     def _open_bar(self):
