@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pgps_jax.cli import run_dir as rundir
-from pgps_jax.cli.checkpoint import Checkpoints
+from pgps_jax.cli.checkpoint import Checkpoints, due
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
 from pgps_jax.envs import make_env
 from pgps_jax.cli.errors import UsageError
@@ -139,3 +139,10 @@ def test_ensure_writable_names_the_directory(tmp_path):
     blocker.write_text("x")
     with pytest.raises(UsageError, match="cannot write the run directory .*a_file/run"):
         rundir.RunDir(blocker / "run").ensure_writable()
+
+
+def test_a_checkpoint_is_due_by_generations_or_by_the_clock_each_where_set():
+    assert [g for g in range(1, 10) if due(g, 3, None, 0.0)] == [3, 6, 9]
+    assert due(1, None, 120.0, 120.0) and not due(1, None, 120.0, 119.9)
+    assert due(4, 2, 120.0, 5.0) and due(5, 2, 120.0, 130.0) and not due(5, 2, 120.0, 5.0)
+    assert not due(7, None, None, 1e9)

@@ -78,6 +78,14 @@ def _host_leaves(state: Any) -> list[np.ndarray]:
     return [np.asarray(x) for x in jax.device_get(leaves)]
 
 
+def due(generation: int, every: Optional[int], every_s: Optional[float],
+        since_s: float) -> bool:
+    """Whether a checkpoint is due after `generation`, `since_s` seconds after the last one:
+    every `every` generations and every `every_s` seconds, each where set (None: not by it)."""
+    return bool(every and generation % every == 0
+                or every_s is not None and since_s >= every_s)
+
+
 class Checkpoints:
     """The checkpoints of one run directory, keeping the most recent `keep`."""
 

@@ -9,9 +9,8 @@ from typing import Any, Mapping, Optional, Sequence
 from pgps_jax.agent.config import VALUES_BEFORE_ADDED, PGPSConfig, effective_fields
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import UsageError
-from pgps_jax.cli.run_config import (IDENTITY_KEYS, RUN_VALUES_BEFORE_ADDED, RunSettings,
-                                     differences, explicitly_set, flatten, from_dict,
-                                     override_keys, require_training)
+from pgps_jax.cli.run_config import (IDENTITY_KEYS, RunSettings, differences, explicitly_set,
+                                     flatten, from_dict, override_keys, require_training)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,14 +51,11 @@ def _checkpointed_config(directory: rundir.RunDir) -> tuple[int, dict]:
 
 def _with_new_fields(saved: dict) -> dict:
     """A checkpoint's configuration with the settings added since it was written set to the
-    behaviour from before them: PGPS, the run settings of `RUN_VALUES_BEFORE_ADDED`, the
-    PGPSConfig fields' defaults, or their values
+    behaviour from before them: PGPS, the PGPSConfig fields' defaults, or their values
     before they were added where the default differs (`VALUES_BEFORE_ADDED`; such a
     checkpoint resumes by directory, or with resume=true and the old value set)."""
     saved = copy.deepcopy(saved)
     saved.setdefault("algo", {"name": "pgps"})
-    for key, value in RUN_VALUES_BEFORE_ADDED.items():
-        saved.setdefault(key, value)
     defaults = {f.name: VALUES_BEFORE_ADDED.get(f.name, f.default)
                 for f in dataclasses.fields(PGPSConfig)}
     pgps = saved.setdefault("pgps", {})

@@ -29,7 +29,7 @@ from tqdm import tqdm
 from pgps_jax.agent import metrics as schema
 from pgps_jax.agent.algorithms import make_agent
 from pgps_jax.agent.base import Agent
-from pgps_jax.cli import loop
+from pgps_jax.cli import checkpoint, loop
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.checkpoint import Checkpoints
 from pgps_jax.cli.errors import RunFailed, WriteFailed
@@ -169,9 +169,9 @@ class Trainer:
         done = self.total >= budget
         if done:
             state = self.final_evaluation(state)
-        every, every_s = self.run.checkpoint_every, self.run.checkpoint_every_s
-        if (done or every and self.generation % every == 0
-                or every_s is not None and time.perf_counter() - self.checkpointed >= every_s):
+        if done or checkpoint.due(self.generation, self.run.checkpoint_every,
+                                  self.run.checkpoint_every_s,
+                                  time.perf_counter() - self.checkpointed):
             self.save(state)
         return state
 

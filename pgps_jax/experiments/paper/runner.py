@@ -59,6 +59,7 @@ from pgps_jax.agent.config import (EvaluationConfig, effective_fields, for_task,
 from pgps_jax.agent.metrics import Metric, population_return_key, returns_key
 from pgps_jax.cli import loop
 from pgps_jax.cli import run_dir as rundir
+from pgps_jax.cli import checkpoint
 from pgps_jax.cli.checkpoint import Checkpoints
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.cli.stop_request import StopRequest
@@ -311,9 +312,8 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
                         np.asarray(m[key][seed]).item() for key in population_keys])
                 steps = np.where(active, m["gen/total_steps"], steps)
                 at_budget.record(generation, steps, state, agent, budget, at_budget_file)
-                if (time.perf_counter() - checkpointed >= budget.checkpoint_every_s
-                        or budget.checkpoint_every
-                        and generation % budget.checkpoint_every == 0):
+                if checkpoint.due(generation, budget.checkpoint_every, budget.checkpoint_every_s,
+                                  time.perf_counter() - checkpointed):
                     saved, written = save()
                     checkpointed = written
                 elif time.perf_counter() - written >= FILES_EVERY_S:
