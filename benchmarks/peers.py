@@ -41,7 +41,8 @@ from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.assignments import env_assignments
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.envs import ALL_TASKS, make_env
-from pgps_jax.experiments.paper.runner import env_physics, physics_of
+from pgps_jax.experiments.paper.runner import (env_physics, physics_of,
+                                                settings_differing)
 from pgps_jax.experiments.paper.side_by_side import (MEMORY_FRACTION_OLD, memory_share,
                                                      placements)
 
@@ -152,13 +153,12 @@ def done_seeds(directory: pathlib.Path, task: str, seeds: list[int], settings: d
                              "files to run it again")
         recorded = {"physics": ran["physics"]} if "physics" in ran else {}  # older: none
         ran = {**ran, "physics": physics_of({"env": ran["--env"], **recorded}, task)}
-        for option, value in settings.items():
-            if option == "--env" and settings["physics"] is not None:
-                continue  # the MJX physics it gives counts
-            if ran.get(option) != value:
-                raise UsageError(f"seed {seed} in {directory} ran with {option} "
-                                 f"{ran.get(option)!r}, this command asks {value!r}: use the "
-                                 "settings it ran with, or another --out")
+        differ = settings_differing(ran, settings, "--env")
+        if differ:
+            option = differ[0]
+            raise UsageError(f"seed {seed} in {directory} ran with {option} "
+                             f"{ran.get(option)!r}, this command asks {settings[option]!r}: "
+                             "use the settings it ran with, or another --out")
         done.append(seed)
     return done
 

@@ -255,6 +255,20 @@ def test_a_cell_run_with_other_settings_is_refused(uninterrupted):
     runner._require_same(out, before_env, result["settings"], "hopper")  # from before --env
 
 
+def test_settings_differing_counts_the_env_arguments_through_their_physics():
+    """The `--env` arguments of a task with MJX physics count only through the physics they
+    give; those of an env without it count as themselves; `ignored` settings do not count."""
+    mjx = {"physics": {"iterations": 3}, "env": {"fused_solve": False}, "steps": 10}
+    assert runner.settings_differing({**mjx, "env": {}}, mjx, "env") == []
+    assert runner.settings_differing({**mjx, "steps": 20}, mjx, "env") == ["steps"]
+    assert runner.settings_differing({**mjx, "physics": {"iterations": 1}}, mjx,
+                                     "env") == ["physics"]
+    assert runner.settings_differing({**mjx, "steps": 20}, mjx, "env", {"steps"}) == []
+    point_mass = {"physics": None, "--env": {"goal": 1.0}}
+    assert runner.settings_differing({**point_mass, "--env": {}}, point_mass,
+                                     "--env") == ["--env"]
+
+
 def test_a_cell_from_before_the_physics_was_recorded_ran_on_the_physics_of_then():
     """A result without `physics` counts as run on the task's physics of that time, with its
     `--env` arguments: JAX's default matrix products (`matmul_precision=default`) and

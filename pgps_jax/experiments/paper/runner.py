@@ -509,6 +509,16 @@ def physics_of(settings: dict, task: str) -> Optional[dict]:
     return {**then, **{k: v for k, v in settings.get("env", {}).items() if k in then}}
 
 
+def settings_differing(saved: dict, now: dict, env_key: str,
+                       ignored: frozenset = frozenset()) -> list[str]:
+    """The settings of `now`, but `ignored`, that `saved` holds with other values; the `--env`
+    arguments (`env_key`) count only through the MJX physics they give (`now["physics"]`,
+    compared as a setting), so that those which change only how it is computed
+    (`physics.SPEED_ONLY`) may differ, and as themselves for an env without MJX physics."""
+    skip = set(ignored) | ({env_key} if now["physics"] is not None else set())
+    return [key for key in now if key not in skip and saved.get(key) != now[key]]
+
+
 def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
                   done: bool = False) -> None:
     """UsageError naming the settings in which the cell of `task` in `directory` differs from
@@ -518,10 +528,9 @@ def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
     continued from a checkpoint needs its batch, a result does not, and a done cell can be
     given more seeds)."""
     saved = {**_ADDED_SETTINGS, **saved, "physics": physics_of(saved, task)}
-    ignored = ({"config"} | ({"env"} if now["physics"] is not None else set())
-               | ({"devices", "seeds"} if done else set()))
-    differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now" for key in now
-              if key not in ignored and saved.get(key) != now[key]]
+    ignored = {"config"} | ({"devices", "seeds"} if done else set())
+    differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now"
+              for key in settings_differing(saved, now, "env", ignored)]
     saved_config = saved_fields_as_run(saved["config"], _ADDED_CONFIG_FIELDS)
     differ += [f"config.{k}: {saved_config.get(k)!r} there, {v!r} now"
                for k, v in effective_fields(now["config"]).items()
