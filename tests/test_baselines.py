@@ -222,7 +222,8 @@ def test_the_peers_evaluate_on_their_training_steps_until_they_reach_the_budget(
 def test_the_peers_run_seeds_side_by_side_as_each_alone_and_skip_the_done_ones(tmp_path,
                                                                              cache):
     """`benchmarks.peers --concurrent 2`: each seed in a process of its own writes the curve it
-    writes alone; a seed with its record is not run again; result.json gathers the records.
+    writes alone; a seed with its record is not run again, and is refused to a command of other
+    settings; result.json gathers the records.
     (The processes share the session's compilation cache: the second run loads the first's
     programs.)"""
     command = [sys.executable, "-m", "benchmarks.peers", "--algo", "ppo", "--task", "point",
@@ -248,11 +249,11 @@ def test_the_peers_run_seeds_side_by_side_as_each_alone_and_skip_the_done_ones(t
     assert "seed 1:" not in alone.stdout and "seed 2: step 16,384" in alone.stdout
     assert (cell / "seed2.csv").read_text() == together[2]
 
-    other = subprocess.run(command[:-2] + ["--steps", "8192", "--out", str(tmp_path),
-                                           "--seeds", "2"], cwd=root, env=env,
-                           capture_output=True, text=True)
-    assert other.returncode == 2 and "seed 1" in other.stderr
-    assert "--steps 16384" in other.stderr and "asks 8192" in other.stderr
+    from benchmarks.peers import done_seeds, run_settings  # what `--steps 8192` checks
+    from pgps_jax.cli.errors import UsageError
+    with pytest.raises(UsageError, match="seed 1 .* ran with --steps 16384, this command asks "
+                                         "8192"):
+        done_seeds(cell, "point", [1, 2], run_settings("point", 8192, 8192, True, {}))
 
 
 def test_a_peer_seed_counts_as_done_on_the_physics_it_ran_on(tmp_path):
