@@ -264,6 +264,7 @@ def test_settings_differing_counts_the_env_arguments_through_their_physics():
     assert runner.settings_differing({**mjx, "physics": {"iterations": 1}}, mjx,
                                      "env") == ["physics"]
     assert runner.settings_differing({**mjx, "steps": 20}, mjx, "env", {"steps"}) == []
+    assert runner.settings_differing({"env": {}}, mjx, "env") == ["physics", "steps"]  # in order
     point_mass = {"physics": None, "--env": {"goal": 1.0}}
     assert runner.settings_differing({**point_mass, "--env": {}}, point_mass,
                                      "--env") == ["--env"]

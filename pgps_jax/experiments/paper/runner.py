@@ -47,7 +47,7 @@ import math
 import pathlib
 import shutil
 import time
-from typing import Callable, Optional
+from typing import Callable, Collection, Optional
 
 import jax
 import jax.numpy as jnp
@@ -510,11 +510,12 @@ def physics_of(settings: dict, task: str) -> Optional[dict]:
 
 
 def settings_differing(saved: dict, now: dict, env_key: str,
-                       ignored: frozenset = frozenset()) -> list[str]:
-    """The settings of `now`, but `ignored`, that `saved` holds with other values; the `--env`
-    arguments (`env_key`) count only through the MJX physics they give (`now["physics"]`,
-    compared as a setting), so that those which change only how it is computed
-    (`physics.SPEED_ONLY`) may differ, and as themselves for an env without MJX physics."""
+                       ignored: Collection[str] = ()) -> list[str]:
+    """The settings of `now`, in its order and except those in `ignored`, that `saved` holds
+    with other values or not at all. The `--env` arguments (`env_key`) count only through the
+    MJX physics they give (`now["physics"]`, compared as a setting), so that those which change
+    only how it is computed (`physics.SPEED_ONLY`) may differ; for an env without MJX physics
+    they count as themselves."""
     skip = set(ignored) | ({env_key} if now["physics"] is not None else set())
     return [key for key in now if key not in skip and saved.get(key) != now[key]]
 
