@@ -756,6 +756,8 @@ def test_the_grids_hold_the_paper_s_cells():
     (["figure4", "--checkpoint-every", "0"], ["--checkpoint-every must be a positive integer"]),
     (["figure4", "--checkpoint-every-s", "0"],
      ["--checkpoint-every-s must be a positive number of seconds"]),
+    (["figure4", "--checkpoint-every-s", "inf"],
+     ["--checkpoint-every-s must be a positive number of seconds, finite, got inf"]),
     (["figure4", "--env", "contacts=all"], ["--env 'contacts=all'", "floor_contacts"]),
     (["figure4", "--tasks", "ant", "--env", "floor_contacts=all"],
      ["--env: floor_contacts must be one of model, gym, got 'all'"]),

@@ -221,8 +221,9 @@ def main(argv=None) -> int:
         for name in ("steps", "seeds", "checkpoint_every", "concurrent", "seeds_per_program"):
             if getattr(args, name) is not None and getattr(args, name) <= 0:
                 raise UsageError(f"--{name.replace('_', '-')} must be a positive integer")
-        if not args.checkpoint_every_s > 0:
-            raise UsageError("--checkpoint-every-s must be a positive number of seconds")
+        if not 0 < args.checkpoint_every_s < np.inf:  # as the training command's
+            raise UsageError("--checkpoint-every-s must be a positive number of seconds, "
+                             f"finite, got {args.checkpoint_every_s:g}")
         try:
             evaluation = EvaluationConfig(**assignments(args.eval, "--eval",
                                                          field_types(EvaluationConfig)))
