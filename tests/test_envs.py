@@ -81,6 +81,16 @@ def test_start_pose_is_qpos0_or_brax_keyframe():
         make_env("ant", start_pose="bent")
 
 
+def test_settings_given_or_left_to_the_task_s_defaults_build_one_env():
+    """Equal settings, given or the task's defaults, give the same env object (and its
+    compiled programs); other settings another."""
+    hopper = make_env("hopper")
+    assert make_env("hopper", start_pose="qpos0", integrator="euler", fused_solve=None) is hopper
+    assert make_env("hopper", **hopper.settings()) is hopper
+    assert make_env("hopper", iterations=2) is not hopper
+    assert make_env("ant", start_pose="init_qpos") is not make_env("ant")
+
+
 def test_brax_asset_warnings_are_dropped_and_others_shown(capfd):
     make_env("halfcheetah")  # Brax's half_cheetah.xml sets the deprecated settotalmass
     with physics._known_warnings_dropped():

@@ -72,6 +72,7 @@ def test_a_new_run_records_the_physics_it_simulates_and_trains_on_it(monkeypatch
     finally:
         p.lock.release()
     assert built[0].settings() == expected and built[0].physics.fused_solve is False
+    assert built[0] is make_env("hopper", iterations=2, fused_solve=False)  # built once
     written = p.directory.read_config()["physics"]
     assert written["iterations"] == 2 and written["fused_solve"] is False
 

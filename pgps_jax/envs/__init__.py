@@ -14,6 +14,7 @@ from brax.envs.base import Env, State  # the Env contract, re-exported
 from pgps_jax.envs.ant import Ant
 from pgps_jax.envs.half_cheetah import HalfCheetah
 from pgps_jax.envs.hopper import Hopper
+from pgps_jax.envs.mjx_env import MjxEnv
 from pgps_jax.envs.point import PointMass
 from pgps_jax.envs.swimmer import Swimmer
 from pgps_jax.envs.walker2d import Walker2d
@@ -36,10 +37,14 @@ ALL_TASKS = tuple(_REGISTRY)
 
 def make_env(name: str, **kwargs) -> Env:
     """Builds the task `name`; raises ValueError listing the tasks if it is unknown. Equal
-    arguments give the same (immutable) env object, so that agents of equal settings share
-    their compiled programs within a process (`pgps_jax.cli.loop`)."""
+    settings give the same (immutable) env object, whether given or left to the task's
+    defaults, so that agents of equal settings share their compiled programs within a
+    process (`pgps_jax.cli.loop`) and a run's recorded physics builds no second env."""
     if name not in _REGISTRY:
         raise ValueError(f"unknown task {name!r}; available tasks: {', '.join(_REGISTRY)}")
+    env_class = _REGISTRY[name]
+    if issubclass(env_class, MjxEnv):
+        kwargs = env_class.constructor_arguments(**kwargs)
     return _built(name, tuple(sorted(kwargs.items())))
 
 

@@ -59,6 +59,14 @@ class MjxEnv(Env):
         self._init_qpos = jnp.asarray(pose)
         self._data0 = physics.make_data(self.mj_model, self.physics.impl)
 
+    @classmethod
+    def constructor_arguments(cls, start_pose: str = "qpos0", **physics_overrides) -> dict:
+        """Every argument of the constructor at the value it takes for these: `start_pose`
+        and each `Physics` field, the task's default where not given (ValueError or
+        TypeError as the constructor raises them)."""
+        physics = dataclasses.replace(cls.default_physics, **physics_overrides)
+        return {"start_pose": start_pose, **dataclasses.asdict(physics)}
+
     def settings(self) -> dict:
         """What the simulated task depends on beyond its class: the start pose and the
         physics settings (`Physics.model_settings`)."""
