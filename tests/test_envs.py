@@ -116,6 +116,10 @@ def test_physics_overrides_reach_the_model():
         make_env("hopper", substeps=2)
     with pytest.raises(ValueError, match="solver"):
         make_env("hopper", solver="pgs")
+    with pytest.raises(ValueError, match="iterations must be an integer, got 2.0"):
+        make_env("hopper", iterations=2.0)
+    with pytest.raises(ValueError, match="euler_damping must be true or false, got 0"):
+        make_env("hopper", euler_damping=0)  # not the default's env: False == 0
     with pytest.raises(ValueError,
                        match="integrator must be one of .'euler', 'implicitfast', 'rk4'."):
         make_env("hopper", integrator="implicit")

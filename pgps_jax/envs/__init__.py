@@ -37,8 +37,8 @@ ALL_TASKS = tuple(_REGISTRY)
 
 def make_env(name: str, **kwargs) -> Env:
     """Builds the task `name`; raises ValueError listing the tasks if it is unknown. Equal
-    settings give the same (immutable) env object, whether given or left to the task's
-    defaults, so that agents of equal settings share their compiled programs within a
+    settings give the same (immutable) env object, for a MuJoCo task whether given or left to
+    its defaults, so that agents of equal settings share their compiled programs within a
     process (`pgps_jax.cli.loop`) and a run's recorded physics builds no second env."""
     if name not in _REGISTRY:
         raise ValueError(f"unknown task {name!r}; available tasks: {', '.join(_REGISTRY)}")

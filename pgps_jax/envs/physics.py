@@ -9,6 +9,7 @@ installed).
 import contextlib
 import dataclasses
 import functools
+import numbers
 import sys
 
 from typing import Optional
@@ -99,6 +100,8 @@ class Physics:
         return {k: v for k, v in dataclasses.asdict(self).items() if k not in SPEED_ONLY}
 
     def __post_init__(self):
+        for field in dataclasses.fields(self):
+            _require_type(field.name, getattr(self, field.name), field.type)
         if self.integrator not in _INTEGRATORS:
             raise ValueError(f"integrator must be one of {sorted(_INTEGRATORS)}, "
                              f"got {self.integrator!r}")
@@ -114,6 +117,21 @@ class Physics:
             raise ValueError(
                 f"iterations and ls_iterations must be >= 1, got {self.iterations}, "
                 f"{self.ls_iterations}")
+
+
+def _require_type(name: str, value, kind) -> None:
+    """ValueError unless `value` is of the field's type: an integer for `int` (not a bool), a
+    bool for `bool` (None too for `Optional[bool]`), a string for `str`."""
+    allowed = {int: "an integer", bool: "true or false", Optional[bool]: "true, false or None",
+               str: "a string"}[kind]
+    if kind is int:
+        valid = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+    elif kind is str:
+        valid = isinstance(value, str)
+    else:
+        valid = isinstance(value, bool) or (value is None and kind is Optional[bool])
+    if not valid:
+        raise ValueError(f"{name} must be {allowed}, got {value!r}")
 
 
 def require_precision(matmul_precision: str, fused_solve: Optional[bool]) -> None:
