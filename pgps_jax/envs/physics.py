@@ -129,7 +129,7 @@ def _require_type(name: str, value, kind) -> None:
     elif kind is str:
         valid = isinstance(value, str)
     else:
-        valid = isinstance(value, bool) or (value is None and kind is Optional[bool])
+        valid = isinstance(value, bool) or (value is None and kind == Optional[bool])
     if not valid:
         raise ValueError(f"{name} must be {allowed}, got {value!r}")
 
