@@ -15,6 +15,7 @@ from typing import Any, Iterable, Mapping, Optional, Sequence
 
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, check_for_algorithm
 from pgps_jax.cli.errors import UsageError
+from pgps_jax.field_types import mismatch
 
 CONFIG_DIR = pathlib.Path(__file__).resolve().parents[2] / "configs"
 """`configs/` at the repository top level (the package is installed editable)."""
@@ -172,20 +173,14 @@ def check_overrides(args: Sequence[str]) -> None:
 
 
 def coerce(key: str, value: Any, kind: Any) -> Any:
-    """`value` as the dataclass field type `kind`, or a UsageError naming `key`."""
+    """`value` as the dataclass field type `kind`, or a UsageError naming `key`: an integral
+    float as an integer, an integer as a float, a list as a tuple of layer widths; otherwise
+    the value itself where it is of the type (`field_types.mismatch`)."""
     optional = [k for k in typing.get_args(kind) if k is not type(None)]
     if typing.get_origin(kind) is typing.Union and len(optional) == 1:  # Optional[X]
         return None if value is None else coerce(key, value, optional[0])
-    if kind is bool:
-        if isinstance(value, bool):
-            return value
-        raise UsageError(f"{key} must be true or false, got {value!r}")
-    if kind is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        if isinstance(value, float) and value.is_integer():
-            return int(value)
-        raise UsageError(f"{key} must be an integer, got {value!r}")
+    if kind is int and isinstance(value, float) and value.is_integer():
+        return int(value)
     if kind is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             return float(value)
@@ -194,11 +189,12 @@ def coerce(key: str, value: Any, kind: Any) -> Any:
         if isinstance(value, (list, tuple)):
             return tuple(coerce(f"{key}[{i}]", v, int) for i, v in enumerate(value))
         raise UsageError(f"{key} must be a list of layer widths like [400,300], got {value!r}")
-    if kind is str:
-        if isinstance(value, str) and value:
-            return value
-        raise UsageError(f"{key} must be a non-empty string, got {value!r}")
-    raise TypeError(f"unsupported field type {kind} of {key}")
+    if kind is str and value == "":
+        raise UsageError(f"{key} must be a non-empty string, got ''")
+    expected = mismatch(value, kind)
+    if expected:
+        raise UsageError(f"{key} must be {expected}, got {value!r}")
+    return value
 
 
 def pgps_config(values: Mapping[str, Any]) -> PGPSConfig:

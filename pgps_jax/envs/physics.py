@@ -9,7 +9,6 @@ installed).
 import contextlib
 import dataclasses
 import functools
-import numbers
 import sys
 
 from typing import Optional
@@ -24,6 +23,7 @@ import numpy as np
 from pgps_jax.envs import mjx_rewrites
 from pgps_jax.envs.mjx_rewrites import fused_solve as fused
 from pgps_jax.envs.mjx_rewrites import small_linalg
+from pgps_jax.field_types import mismatch
 
 _ASSETS = epath.resource_path(brax.__name__) / "envs/assets"
 _SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
@@ -101,7 +101,10 @@ class Physics:
 
     def __post_init__(self):
         for field in dataclasses.fields(self):
-            _require_type(field.name, getattr(self, field.name), field.type)
+            value = getattr(self, field.name)
+            expected = mismatch(value, field.type)
+            if expected:
+                raise ValueError(f"{field.name} must be {expected}, got {value!r}")
         if self.integrator not in _INTEGRATORS:
             raise ValueError(f"integrator must be one of {sorted(_INTEGRATORS)}, "
                              f"got {self.integrator!r}")
@@ -117,21 +120,6 @@ class Physics:
             raise ValueError(
                 f"iterations and ls_iterations must be >= 1, got {self.iterations}, "
                 f"{self.ls_iterations}")
-
-
-def _require_type(name: str, value, kind) -> None:
-    """ValueError unless `value` is of the field's type: an integer for `int` (not a bool), a
-    bool for `bool` (None too for `Optional[bool]`), a string for `str`."""
-    allowed = {int: "an integer", bool: "true or false", Optional[bool]: "true, false or None",
-               str: "a string"}[kind]
-    if kind is int:
-        valid = isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
-    elif kind is str:
-        valid = isinstance(value, str)
-    else:
-        valid = isinstance(value, bool) or (value is None and kind == Optional[bool])
-    if not valid:
-        raise ValueError(f"{name} must be {allowed}, got {value!r}")
 
 
 def require_precision(matmul_precision: str, fused_solve: Optional[bool]) -> None:
