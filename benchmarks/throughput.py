@@ -9,11 +9,15 @@ Q-filtering active:
     MLPs, optax Adam, a `lax.scan`), batch 256; (c) sequential env steps per 1M-step run ×
     (a) + updates per run × (b).
   - critic and actor updates per second of the project's TD3 at batch 256.
-With --full-run TASK: the wall-clock of a whole 1M-step run (as the CLI runs it, without file
-I/O: a test evaluation begun every 10,000 steps inside each generation) for 1 seed and for 5
-seeds vmapped; compile time reported separately.
+With --updates-only: the TD3 updates and floor (b) alone, e.g. to compare XLA's options (one
+process per variant, each under its XLA_FLAGS). With --full-run TASK: the wall-clock of a
+whole 1M-step run (as the CLI runs it, without file I/O: a test evaluation begun every 10,000
+steps inside each generation) for 1 seed and for 5 seeds vmapped; compile time reported
+separately.
 
     python -m benchmarks.throughput --tasks halfcheetah hopper --full-run halfcheetah
+    XLA_FLAGS=--xla_gpu_enable_triton_gemm=false python -m benchmarks.throughput \
+        --tasks halfcheetah --updates-only --out benchmarks/results/updates_cublas.json
 """
 
 import argparse
@@ -127,16 +131,57 @@ def bench_config(task: str):
     return for_task(task, **(SMOKE_SIZES if SMOKE else {}))
 
 
-def components(task: str, env_kwargs: dict) -> dict:
+def late_run_state(task: str, env_kwargs: dict):
+    """The agent of `task`'s benchmark configuration and a fresh state moved to the step at
+    which Q-filtering starts."""
     config = bench_config(task)
-    env = make_env(task, **env_kwargs)
-    n, t_max = config.pop_size, config.t_max
-    agent = PGPS(config, env, TESTS)
-    td3, unflatten, policy = agent.td3, agent.actor, agent.policy
+    agent = PGPS(config, make_env(task, **env_kwargs), TESTS)
     init = jax.jit(agent.init)
     init_s, _ = timed(init, jax.random.PRNGKey(0), repeats=0)
     state = init(jax.random.PRNGKey(0))
-    state = state.replace(total_steps=jnp.asarray(config.q_filter_start, jnp.int32))
+    return agent, state.replace(total_steps=jnp.asarray(config.q_filter_start, jnp.int32)), init_s
+
+
+def update_timings(agent, state, key) -> dict:
+    """The TD3 updates at batch 256: a generation's schedule (`td3.train`, N·T_max pairs, the
+    actor on L^O), the critic update alone (with its own π' forward pass) and the actor update
+    alone, each over UPDATE_STEPS, with floor (b) measured in the same process."""
+    config, td3, env = agent.config, agent.td3, agent.env
+    num_update = config.pop_size * config.t_max // config.update_blocks
+    train = jax.jit(lambda s: td3.train(s.td3, s.buffer, key, jnp.asarray(num_update),
+                                        num_update, agent.actor(s.cem.elite),
+                                        jnp.asarray(False), s.beta))
+    _, train_s = timed(train, state, repeats=2)
+
+    def critic_update(t, batch, k):     # standalone: with its own π' forward pass
+        noise = td3.smoothing_noise(k, (256, env.action_size))
+        return td3.critic_update(t, batch, td3.target_actions(t.actor_target, batch.next_obs,
+                                                              noise))[0]
+    critic_fn = jax.jit(lambda s: jax.lax.scan(
+        lambda t, k: (critic_update(t, replay.sample(s.buffer, k, 256), k), None),
+        s.td3, jax.random.split(key, UPDATE_STEPS))[0])
+    no_elite = jnp.zeros((256, env.action_size))
+    actor_fn = jax.jit(lambda s: jax.lax.scan(
+        lambda t, k: (td3.actor_update(t, replay.sample(s.buffer, k, 256).obs, no_elite,
+                                       jnp.asarray(0.0))[0], None),
+        s.td3, jax.random.split(key, UPDATE_STEPS))[0])
+    _, critic_scan_s = timed(critic_fn, state)
+    _, actor_scan_s = timed(actor_fn, state)
+    plain_critic_s, plain_actor_s = plain_updates(env.observation_size, env.action_size)
+    return {
+        "td3_updates_ms": train_s * 1e3,
+        "per_update_us": {
+            "critic": critic_scan_s / UPDATE_STEPS * 1e6, "actor": actor_scan_s / UPDATE_STEPS * 1e6,
+            "floor_critic": plain_critic_s * 1e6, "floor_actor": plain_actor_s * 1e6,
+            "td3_train_per_update_pair": train_s / (config.update_blocks * num_update) * 1e6},
+        "updates_per_s": {"critic": UPDATE_STEPS / critic_scan_s, "actor": UPDATE_STEPS / actor_scan_s},
+        "floor_update_pair_s": plain_critic_s + plain_actor_s}
+
+
+def components(task: str, env_kwargs: dict) -> dict:
+    agent, state, init_s = late_run_state(task, env_kwargs)
+    config, env, policy = agent.config, agent.env, agent.policy
+    n, t_max = config.pop_size, config.t_max
     key = jax.random.PRNGKey(1)
     population = cem.ask(key, state.cem, n)
     reset_keys = jax.random.split(key, n)
@@ -155,40 +200,19 @@ def components(task: str, env_kwargs: dict) -> dict:
                                      sigma_decay=config.sigma_decay,
                                      divide_by_k=config.cem_divide_by_k))
     _, tell_s = timed(tell, state.cem, population, returns)
-    num_update = n * t_max // config.update_blocks
-    train = jax.jit(lambda s: td3.train(s.td3, s.buffer, key, jnp.asarray(num_update),
-                                        num_update, unflatten(s.cem.elite),
-                                        jnp.asarray(False), s.beta))
-    _, train_s = timed(train, state, repeats=2)
+    updates = update_timings(agent, state, key)
     step = jax.jit(agent.generation_step)
     no_eval = state.replace(evaluation=state.evaluation.replace(
         next_due=jnp.asarray(2**30, jnp.int32)))
     _, generation_s = timed(step, no_eval, repeats=2)
     _, generation_eval_s = timed(step, state, repeats=2)    # an evaluation begins alongside
 
-    def critic_update(t, batch, k):     # standalone: with its own π' forward pass
-        noise = td3.smoothing_noise(k, (256, env.action_size))
-        return td3.critic_update(t, batch, td3.target_actions(t.actor_target, batch.next_obs,
-                                                              noise))[0]
-    critic_fn = jax.jit(lambda s: jax.lax.scan(
-        lambda t, k: (critic_update(t, replay.sample(s.buffer, k, 256), k), None),
-        s.td3, jax.random.split(key, UPDATE_STEPS))[0])
-    no_elite = jnp.zeros((256, env.action_size))
-    actor_fn = jax.jit(lambda s: jax.lax.scan(
-        lambda t, k: (td3.actor_update(t, replay.sample(s.buffer, k, 256).obs, no_elite,
-                                       jnp.asarray(0.0))[0], None),
-        s.td3, jax.random.split(key, UPDATE_STEPS))[0])
-    _, critic_scan_s = timed(critic_fn, state)
-    _, actor_scan_s = timed(actor_fn, state)
-
     # floors measured in this process
     data = jax.vmap(env.reset)(reset_keys).pipeline_state
     bare = jax.jit(bare_rollout(env, n, 100))
     _, bare_s = timed(bare, data, key)
     bare_ms = bare_s / 100 * 1e3
-    plain_critic_s, plain_actor_s = plain_updates(env.observation_size, env.action_size)
     sequential = sequential_steps_per_run(config)
-    updates = TOTAL_STEPS
     env_ms = rollout_s / max(int(lengths.max()), 1) * 1e3
     eval_ms = eval_s / TESTS.steps * 1e3
     return {
@@ -198,21 +222,17 @@ def components(task: str, env_kwargs: dict) -> dict:
         "generation_ms": {
             "population_rollout": rollout_s * 1e3, "evaluation_30_episodes": eval_s * 1e3,
             "q_filter": qfilter_s * 1e3, "cem_update": tell_s * 1e3,
-            "td3_updates": train_s * 1e3, "generation_step_total": generation_s * 1e3,
+            "td3_updates": updates["td3_updates_ms"], "generation_step_total": generation_s * 1e3,
             "generation_step_total_with_eval_alongside": generation_eval_s * 1e3,
             "generation_T": int(episode_limit(state.total_steps, config))},
         "per_env_step_ms": {"population": env_ms, "evaluation": eval_ms, "floor_bare_mjx": bare_ms,
                             "population_over_floor": env_ms / bare_ms},
-        "per_update_us": {
-            "critic": critic_scan_s / UPDATE_STEPS * 1e6, "actor": actor_scan_s / UPDATE_STEPS * 1e6,
-            "floor_critic": plain_critic_s * 1e6, "floor_actor": plain_actor_s * 1e6,
-            "td3_train_per_update_pair": train_s / (config.update_blocks * num_update) * 1e6},
-        "updates_per_s": {"critic": UPDATE_STEPS / critic_scan_s, "actor": UPDATE_STEPS / actor_scan_s},
+        "per_update_us": updates["per_update_us"], "updates_per_s": updates["updates_per_s"],
         "run_1m_floor_s": {
             "sequential_env_steps": sequential,
             "env": sequential * bare_ms / 1e3,
-            "updates": updates * (plain_critic_s + plain_actor_s),
-            "total": sequential * bare_ms / 1e3 + updates * (plain_critic_s + plain_actor_s)},
+            "updates": TOTAL_STEPS * updates["floor_update_pair_s"],
+            "total": sequential * bare_ms / 1e3 + TOTAL_STEPS * updates["floor_update_pair_s"]},
     }
 
 
@@ -275,6 +295,9 @@ def main():
     parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
                         help="physics settings for every task (`make_env`'s arguments), e.g. "
                         "fused_solve=false matmul_precision=default")
+    parser.add_argument("--updates-only", action="store_true",
+                        help="time only the TD3 updates and floor (b), e.g. under other "
+                        "XLA_FLAGS")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script")
     args = parser.parse_args()
     try:
@@ -284,7 +307,7 @@ def main():
     args.out = results_path(args.out, "benchmarks/results/throughput.json", args.smoke)
     result = {**provenance(),
               "xla_flags": os.environ.get("XLA_FLAGS", ""),
-              "components": [], "full_runs": []}
+              "components": [], "updates": [], "full_runs": []}
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
 
     def record(kind, entry):
@@ -294,7 +317,12 @@ def main():
             json.dump(result, f, indent=1)
 
     for task in args.tasks:
-        record("components", components(task, env_kwargs))
+        if args.updates_only:
+            agent, state, _ = late_run_state(task, env_kwargs)
+            record("updates", {"task": task, "physics": physics_record(agent.env),
+                               **update_timings(agent, state, jax.random.PRNGKey(1))})
+        else:
+            record("components", components(task, env_kwargs))
     for task in args.full_run:
         for seeds in args.seeds:
             record("full_runs", full_run(task, seeds, env_kwargs))
