@@ -17,7 +17,7 @@ separately.
 
     python -m benchmarks.throughput --tasks halfcheetah hopper --full-run halfcheetah
     XLA_FLAGS=--xla_gpu_enable_triton_gemm=false python -m benchmarks.throughput \
-        --tasks halfcheetah --updates-only --out benchmarks/results/updates_cublas.json
+        --tasks halfcheetah --updates-only --out runs/updates_cublas.json
 """
 
 import argparse
@@ -132,8 +132,8 @@ def bench_config(task: str):
 
 
 def late_run_state(task: str, env_kwargs: dict):
-    """The agent of `task`'s benchmark configuration and a fresh state moved to the step at
-    which Q-filtering starts."""
+    """The agent of `task`'s benchmark configuration, a fresh state moved to the step at which
+    Q-filtering starts, and the seconds its `init` took to compile and run."""
     config = bench_config(task)
     agent = PGPS(config, make_env(task, **env_kwargs), TESTS)
     init = jax.jit(agent.init)
@@ -171,10 +171,12 @@ def update_timings(agent, state, key) -> dict:
     return {
         "td3_updates_ms": train_s * 1e3,
         "per_update_us": {
-            "critic": critic_scan_s / UPDATE_STEPS * 1e6, "actor": actor_scan_s / UPDATE_STEPS * 1e6,
+            "critic": critic_scan_s / UPDATE_STEPS * 1e6,
+            "actor": actor_scan_s / UPDATE_STEPS * 1e6,
             "floor_critic": plain_critic_s * 1e6, "floor_actor": plain_actor_s * 1e6,
             "td3_train_per_update_pair": train_s / (config.update_blocks * num_update) * 1e6},
-        "updates_per_s": {"critic": UPDATE_STEPS / critic_scan_s, "actor": UPDATE_STEPS / actor_scan_s},
+        "updates_per_s": {"critic": UPDATE_STEPS / critic_scan_s,
+                          "actor": UPDATE_STEPS / actor_scan_s},
         "floor_update_pair_s": plain_critic_s + plain_actor_s}
 
 
@@ -290,7 +292,8 @@ def main():
     parser.add_argument("--tasks", nargs="*", default=list(TASKS))
     parser.add_argument("--full-run", nargs="*", default=[], metavar="TASK")
     parser.add_argument("--seeds", nargs="*", type=int, default=[1, 5])
-    parser.add_argument("--out", help="default: benchmarks/results/throughput.json; with "
+    parser.add_argument("--out", help="default: benchmarks/results/throughput.json (with "
+                        "--updates-only, update_timings.json); with "
                         "--smoke, the same name in a temporary directory")
     parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
                         help="physics settings for every task (`make_env`'s arguments), e.g. "
@@ -304,7 +307,8 @@ def main():
         env_kwargs = env_assignments(args.env)
     except UsageError as e:
         parser.error(str(e))
-    args.out = results_path(args.out, "benchmarks/results/throughput.json", args.smoke)
+    default = "update_timings.json" if args.updates_only else "throughput.json"
+    args.out = results_path(args.out, f"benchmarks/results/{default}", args.smoke)
     result = {**provenance(),
               "xla_flags": os.environ.get("XLA_FLAGS", ""),
               "components": [], "updates": [], "full_runs": []}

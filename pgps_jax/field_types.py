@@ -1,7 +1,7 @@
 """Whether a value is of a settings field's type, strictly (no conversion).
 
-The one check behind `Physics`'s refusal of its Python callers' values and the command line's
-of its parsed ones (`cli.run_config.coerce`), with the words both put in their messages.
+The type check behind the refusals of `envs.physics.Physics` and `cli.run_config.coerce`, and
+the words of their messages.
 """
 
 import numbers

@@ -1,6 +1,7 @@
 """run_config: Hydra YAML -> (RunSettings, PGPSConfig), override checks, config differences."""
 
 
+import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
@@ -8,8 +9,8 @@ from omegaconf import OmegaConf
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, for_task
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.cli.run_config import (CONFIG_DIR, IDENTITY_KEYS, PGPS_FIELDS,
-                                 check_overrides, differences, env_choices, explicitly_set,
-                                 from_dict, override_keys, pgps_config,
+                                 check_overrides, coerce, differences, env_choices,
+                                 explicitly_set, from_dict, override_keys, pgps_config,
                                  register_structured_configs)
 from pgps_jax.cli.trainer import first_non_finite
 
@@ -93,6 +94,20 @@ def test_pgps_config_coerces_yaml_types():
     config = pgps_config({"buffer_size": 50000.0, "actor_hidden": [32, 32], "tau": 1})
     assert config.buffer_size == 50000 and isinstance(config.buffer_size, int)
     assert config.actor_hidden == (32, 32) and config.tau == 1.0
+
+
+def test_coerce_gives_python_values_and_names_what_a_value_must_be():
+    """A numpy integer becomes an int (a configuration is written as JSON); a value of another
+    type is refused in the words of `field_types.mismatch`."""
+    assert type(coerce("pgps.batch_size", np.int64(32), int)) is int
+    assert coerce("pgps.actor_hidden", [np.int64(8)], tuple[int, ...]) == (8,)
+    assert type(coerce("pgps.actor_hidden", [np.int64(8)], tuple[int, ...])[0]) is int
+    for value, kind, words in ((5, str, "must be a string, got 5"),
+                               ("", str, "must be a non-empty string, got ''"),
+                               (True, int, "must be an integer, got True"),
+                               (1, bool, "must be true or false, got 1")):
+        with pytest.raises(UsageError, match=words):
+            coerce("key", value, kind)
 
 
 @pytest.mark.parametrize("key, value, words", [

@@ -173,9 +173,10 @@ def check_overrides(args: Sequence[str]) -> None:
 
 
 def coerce(key: str, value: Any, kind: Any) -> Any:
-    """`value` as the dataclass field type `kind`, or a UsageError naming `key`: an integral
-    float as an integer, an integer as a float, a list as a tuple of layer widths; otherwise
-    the value itself where it is of the type (`field_types.mismatch`)."""
+    """`value` as the dataclass field type `kind`, or a UsageError naming `key`: None for an
+    `Optional` field; an integral number as an int, an integer as a float, a list or tuple as
+    a tuple of layer widths, a non-empty string as itself; a bool as itself. Strict checks by
+    `field_types.mismatch`."""
     optional = [k for k in typing.get_args(kind) if k is not type(None)]
     if typing.get_origin(kind) is typing.Union and len(optional) == 1:  # Optional[X]
         return None if value is None else coerce(key, value, optional[0])
@@ -190,11 +191,11 @@ def coerce(key: str, value: Any, kind: Any) -> Any:
             return tuple(coerce(f"{key}[{i}]", v, int) for i, v in enumerate(value))
         raise UsageError(f"{key} must be a list of layer widths like [400,300], got {value!r}")
     if kind is str and value == "":
-        raise UsageError(f"{key} must be a non-empty string, got ''")
+        raise UsageError(f"{key} must be a non-empty string, got {value!r}")
     expected = mismatch(value, kind)
     if expected:
         raise UsageError(f"{key} must be {expected}, got {value!r}")
-    return value
+    return int(value) if kind is int else value
 
 
 def pgps_config(values: Mapping[str, Any]) -> PGPSConfig:
