@@ -1,3 +1,5 @@
+"""field_types.mismatch: the strict check of a value against a settings field's type."""
+
 from typing import Optional
 
 import numpy as np
