@@ -1,6 +1,6 @@
 """`python -m pgps_jax.render run=<dir>`: an MP4 or GIF of one episode of a run's saved actor.
 
-    python -m pgps_jax.render run=runs/halfcheetah/seed0                  # <dir>/episode.gif
+    python -m pgps_jax.render run=runs/halfcheetah/seed0                  # <dir>/episode.mp4
     python -m pgps_jax.render run=runs/hopper/seed0 out=hopper.mp4 steps=500 width=640 height=480
 
 The episode is played on MJX (deterministic actor, start state = the first evaluation episode's,
