@@ -463,12 +463,15 @@ def test_a_done_cell_given_more_seeds_runs_only_those(uninterrupted, tmp_path):
     np.testing.assert_array_equal(drawn.returns, curves.returns)
     older = json.loads((cell / runner.RESULT).read_text())  # a result from before wall_split_s
     del older["wall_split_s"]
+    older["device"] = "1 × an older card"  # the seeds done ran elsewhere
     (cell / runner.RESULT).write_text(json.dumps(older))
     (merged,) = command.run("figure4", tmp_path, three, tasks=["hopper"], configs=["pgps"],
                             progress=False)
     assert merged["seeds"] == [1, 2, 3] and merged["settings"]["seeds"] == 3
     assert "wall_split_s" not in merged and "wall_split_s" not in merged["parts"][0]
     assert [part["seeds"] for part in merged["parts"]] == [[1, 2], [3]]
+    assert [part["device"] for part in merged["parts"]] == ["1 × an older card", result["device"]]
+    assert merged["device"] == f"1 × an older card; {result['device']}"
     assert {actor: values[:2] for actor, values in merged["final"].items()} == result["final"]
     assert all((cell / name).read_bytes() == content for name, content in before.items())
     # seed 3 is what it is as the second part of a cell of three run two seeds to a program

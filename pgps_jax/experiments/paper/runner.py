@@ -37,7 +37,7 @@ own, its seeds keyed as in the whole cell, so the parts can run in turn or side 
 processes of their own (`side_by_side`). A part writes its seeds' files, and its checkpoints,
 at-budget record and result under its own names (`Seeds.suffix`); once every part is done,
 `result.json` merges theirs (seeds in order, `wall_s` the sum of the parts' wall-clocks,
-`parts` each part's own). A done cell given more seeds (`Budget.seeds`) runs the others as
+`device` the parts' devices, `parts` each part's own). A done cell given more seeds (`Budget.seeds`) runs the others as
 parts after the seeds it has, which keep their files (`parts(budget, done)`).
 """
 
@@ -398,6 +398,9 @@ def merge_parts(directory: pathlib.Path, budget: Budget, settings: dict, task: s
               "parts": [part for d in done for part in d.get("parts", [
                   {key: d[key] for key in ("seeds", "generations", "wall_s", "wall_split_s",
                                            "device") if key in d}])]}
+    devices = dict.fromkeys(part["device"] for part in merged["parts"] if "device" in part)
+    if devices:  # the parts ran on these, each named once
+        merged["device"] = "; ".join(devices)
     if all("wall_split_s" in d for d in done):  # results from before it have none
         merged["wall_split_s"] = {key: sum(d["wall_split_s"][key] for d in done)
                                   for key in WALL_SPLIT}
