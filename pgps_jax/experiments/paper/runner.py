@@ -37,8 +37,9 @@ own, its seeds keyed as in the whole cell, so the parts can run in turn or side 
 processes of their own (`side_by_side`). A part writes its seeds' files, and its checkpoints,
 at-budget record and result under its own names (`Seeds.suffix`); once every part is done,
 `result.json` merges theirs (seeds in order, `wall_s` the sum of the parts' wall-clocks,
-`device` the parts' devices, `parts` each part's own). A done cell given more seeds (`Budget.seeds`) runs the others as
-parts after the seeds it has, which keep their files (`parts(budget, done)`).
+`device` the parts' devices, `parts` each part's own). A done cell given more seeds
+(`Budget.seeds`) runs the others as parts after the seeds it has, which keep their files
+(`parts(budget, done)`).
 """
 
 import dataclasses
