@@ -602,6 +602,71 @@ def test_a_part_whose_checkpoint_was_lost_runs_again_from_its_start(in_parts, tm
     assert json.loads((cell / runner.RESULT).read_text())["seeds"] == [1, 2]  # merged
 
 
+def test_a_part_stopped_before_its_first_checkpoint_leaves_neither_checkpoints_nor_records(
+        in_parts, tmp_path):
+    """Stopped in its first generation (before any checkpoint), a part leaves no checkpoints
+    folder, which would hold the cell to its split; and a fresh start drops the at-budget
+    record of an earlier run, whose seeds' records it would otherwise take for its own."""
+    cell = tmp_path / "cell"
+    cell.mkdir()
+    first = runner.parts(IN_PARTS)[0]
+    earlier = cell / runner.part_file(runner.AT_BUDGET, first)
+    earlier.write_bytes(b"an earlier run's record")
+
+    def stop(generation, steps):
+        raise Stop
+    with pytest.raises(Stop):
+        runner.run_cell(HOPPER, cell, IN_PARTS, stop, first)
+    assert not (cell / runner.part_file(runner.CHECKPOINTS, first)).exists()
+    assert not earlier.exists()
+
+
+def test_done_parts_and_checkpoints_of_another_split_are_refused(tmp_path):
+    """A cell continues only in the split it was started in: a done part of another split
+    (whose seeds it would play again, over their files) is refused as another split's
+    checkpoints are, unless the cell's result holds its seeds already; an empty checkpoints
+    folder holds no checkpoint. A checkpoint of other devices is refused with how to
+    continue it, not with removing the cell's folder."""
+    four = dataclasses.replace(BUDGET, seeds=4, seeds_per_program=2)
+    settings = runner._settings("pgps", for_task("hopper", **TINY), four, 1, make_env("hopper"))
+    (tmp_path / "result_seeds1-2.json").write_text(json.dumps({"seeds": [1, 2],
+                                                               "settings": settings}))
+    runner._require_parts_alike(tmp_path, four, settings, "hopper")  # its own split
+    one = dataclasses.replace(four, seeds_per_program=1)
+    with pytest.raises(UsageError, match=r"done in another split \(result_seeds1-2.json\)"):
+        runner._require_parts_alike(tmp_path, one, settings, "hopper")
+    (tmp_path / runner.RESULT).write_text(json.dumps({"seeds": [1, 2], "settings": settings}))
+    runner._require_parts_alike(tmp_path, one, settings, "hopper")  # merged: seeds 3-4 given
+    (tmp_path / "checkpoints_seeds3-4").mkdir()  # a part of two stopped while compiling
+    runner._require_parts_alike(tmp_path, one, settings, "hopper")
+    (tmp_path / "checkpoints_seeds3-4" / "5").mkdir()
+    with pytest.raises(UsageError, match=r"run in parts \(checkpoints_seeds3-4\)"):
+        runner._require_parts_alike(tmp_path, one, settings, "hopper")
+    elsewhere = {**settings, "devices": 2}
+    with pytest.raises(UsageError, match=r"(?s)continue it with the settings, --seeds and "
+                                         r"devices.*devices: 2 there, 1 now"):
+        runner._require_same(tmp_path, elsewhere, settings, "hopper")
+    runner._require_same(tmp_path, elsewhere, settings, "hopper", done=True)
+
+
+def test_a_failing_summary_leaves_the_run_s_own_error_reported(tmp_path, monkeypatch, capsys):
+    done = tmp_path / "figure4" / "hopper" / "pgps"
+    done.mkdir(parents=True)
+    (done / runner.RESULT).write_text("{}")
+
+    def failing_cell(*args):
+        raise RunFailed("hopper pgps: a program failed")
+
+    def failing_summary(*args):
+        raise ValueError("no figure")
+    monkeypatch.setattr(command, "_run_in_turn", failing_cell)
+    monkeypatch.setattr(command, "write_summary", failing_summary)
+    with pytest.raises(RunFailed, match="a program failed"):
+        command.run("figure4", tmp_path, BUDGET, tasks=["hopper"], configs=["pgps"],
+                    progress=False)
+    assert "were not drawn: no figure" in capsys.readouterr().err
+
+
 def _same_platform(cache: pathlib.Path) -> dict:
     """A child command's environment: a CLI subprocess's (`cli_env`) on this test's platform,
     so that its cells compute what this process's in-turn cells computed."""

@@ -82,13 +82,32 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
     require_reference(reference)
     try:
         if concurrent > 1:
-            return _run_side_by_side(experiment, out, budget, chosen, concurrent, progress,
-                                     dict(os.environ if child_environ is None
-                                          else child_environ))
-        return [_run_in_turn(experiment, out, budget, cell, progress) for cell in chosen]
-    finally:  # the tables and figures of every done cell, whatever became of the others
-        if any((out / experiment).glob(f"*/*/{RESULT}")):
-            write_summary(experiment, out, reference)
+            results = _run_side_by_side(experiment, out, budget, chosen, concurrent, progress,
+                                        dict(os.environ if child_environ is None
+                                             else child_environ))
+        else:
+            results = [_run_in_turn(experiment, out, budget, cell, progress) for cell in chosen]
+    except BaseException:
+        _summarise(experiment, out, reference, failing=True)
+        raise
+    _summarise(experiment, out, reference)
+    return results
+
+
+def _summarise(experiment: str, out: pathlib.Path, reference: pathlib.Path,
+               failing: bool = False) -> None:
+    """`write_summary` of every done cell, whatever became of the others; while the run
+    fails (`failing`), a failure to draw them is only warned of, so that the run's own error
+    is the one reported."""
+    if not any((out / experiment).glob(f"*/*/{RESULT}")):
+        return
+    try:
+        write_summary(experiment, out, reference)
+    except Exception as e:
+        if not failing:
+            raise
+        print(f"warning: the tables and figures of the done cells were not drawn: {e}",
+              file=sys.stderr)
 
 
 def _units(out: pathlib.Path, experiment: str, budget: Budget, cell: Cell) -> list[Seeds]:

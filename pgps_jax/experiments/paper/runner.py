@@ -29,8 +29,9 @@ start states PRNGKey(k + 10,000), the settings, the wall-clock, its parts outsid
 generations, `WALL_SPLIT`, and the device); and `checkpoints/` while it runs, written every
 `Budget.checkpoint_every_s` seconds (and every `Budget.checkpoint_every` generations where
 given) and when SIGINT or SIGTERM stops it (after the generation under way). A cell is
-continued or counted as done only under the settings it was started with, its number of seeds
-aside.
+counted as done only under the settings it was started with, its number of seeds and devices
+aside, and continued from a checkpoint only under those it was started with, seeds and devices
+included.
 
 A cell's seeds can also run in parts (`Budget.seeds_per_program`): each part a program of its
 own, its seeds keyed as in the whole cell, so the parts can run in turn or side by side in
@@ -253,6 +254,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     start = time.perf_counter()
     try:
         if checkpoints.latest_step() is None:
+            at_budget_file.unlink(missing_ok=True)  # an earlier run's, whose checkpoints went
             programs = loop.Programs.compile(agent, keys, eval_keys, seeds=True,
                                              sharding=sharding, waiting=True)
             state = programs["init"](keys, eval_keys)
@@ -334,6 +336,8 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
             split["final_evaluation"] += time.perf_counter() - began
     finally:
         checkpoints.close()
+        if checkpoints.directory.is_dir() and not any(checkpoints.directory.iterdir()):
+            checkpoints.directory.rmdir()  # stopped before its first checkpoint
     for seed in np.flatnonzero(finished.unfinished_active):  # played from its start
         _add_evaluation(curves, finished.unfinished, seed, int(finished.unfinished_step[seed]))
     write_files()
@@ -358,17 +362,30 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
 def _require_parts_alike(directory: pathlib.Path, budget: Budget, settings: dict,
                          task: str) -> None:
     """UsageError unless every part's result in `directory` was run under `settings`, and
-    every checkpoint there is of one of the parts of `budget`'s split (a cell cut off in
-    another split continues only in that split)."""
+    every checkpoint there, and every done part whose seeds the cell's `RESULT` does not hold
+    yet, is of one of the parts of `budget`'s split (a cell cut off in another split
+    continues only in that split)."""
+    merged = done_seeds(directory)
+    split = _split(budget, merged)
     stem, _, extension = RESULT.partition(".")
+    ours = {part_file(RESULT, part) for part in split}
+    others = []
     for done in sorted(directory.glob(f"{stem}{PART}*.{extension}")):
-        _require_same(directory, json.loads(done.read_text())["settings"], settings, task,
-                      done=True)
-    ours = {part_file(CHECKPOINTS, part) for part in _split(budget, done_seeds(directory))}
-    others = sorted(p.name for p in directory.glob(f"{CHECKPOINTS}*") if p.name not in ours)
+        result = json.loads(done.read_text())
+        _require_same(directory, result["settings"], settings, task, done=True)
+        if done.name not in ours and max(result["seeds"]) > merged:
+            others.append(done.name)
     if others:
-        split = "whole" if CHECKPOINTS in others else "in parts"
-        raise UsageError(f"{directory} holds checkpoints of this cell run {split} "
+        raise UsageError(f"{directory} holds parts of this cell done in another split "
+                         f"({', '.join(others)}); continue it with the --seeds and "
+                         "--seeds-per-program it was started with, or remove them to run "
+                         "their seeds again")
+    ours = {part_file(CHECKPOINTS, part) for part in split}
+    others = sorted(p.name for p in directory.glob(f"{CHECKPOINTS}*")
+                    if p.name not in ours and any(p.iterdir()))
+    if others:
+        whole = "whole" if CHECKPOINTS in others else "in parts"
+        raise UsageError(f"{directory} holds checkpoints of this cell run {whole} "
                          f"({', '.join(others)}); continue it with the --seeds and "
                          "--seeds-per-program it was started with, or remove them to run "
                          "it again")
@@ -385,8 +402,6 @@ def merge_parts(directory: pathlib.Path, budget: Budget, settings: dict, task: s
     if len(files) == 1 or not all(f.exists() for f in files):
         return
     done = [given if f == cell_result else json.loads(f.read_text()) for f in files]
-    if [s for d in done for s in d["seeds"]] != list(range(1, budget.seeds + 1)):
-        return  # another part's process merged them meanwhile
     for result in done:
         _require_same(directory, result["settings"], settings, task, done=True)
     merged = {**done[0], "seeds": [s for d in done for s in d["seeds"]],
@@ -540,10 +555,14 @@ def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
     differ += [f"config.{k}: {saved_config.get(k)!r} there, {v!r} now"
                for k, v in effective_fields(now["config"]).items()
                if saved_config.get(k) != v]
-    if differ:
-        raise UsageError(f"{directory} holds this cell run with other settings; use another "
-                         "--out, or remove the folder to run it again. Differences:\n  "
-                         + "\n  ".join(differ))
+    if not differ:
+        return
+    remedy = ("use another --out, or remove the folder to run it again" if done else
+              "continue it with the settings, --seeds and devices it was started with (a "
+              "part run side by side sees one GPU), or remove its checkpoints to start it "
+              "again")
+    raise UsageError(f"{directory} holds this cell run with other settings; {remedy}. "
+                     "Differences:\n  " + "\n  ".join(differ))
 
 
 def _older_runner(meta: dict, population_columns: int) -> str:

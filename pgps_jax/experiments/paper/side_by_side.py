@@ -5,8 +5,10 @@ One cell's generation is a chain of small kernels that leaves a GPU mostly idle;
 in separate processes fill it (better still under CUDA's MPS daemon, which lets their kernels
 run at once). With `concurrent` slots over G visible GPUs, slot s runs its cells on GPU
 s mod G, the slots placed on a GPU sharing `memory_share` of its memory equally; on a CPU
-every slot uses the host. A cell in a process of its own computes what it computes in the
-command's own process (same seed, same machine, same result).
+every slot uses the host. On the CPU or one GPU a cell in a process of its own computes what
+it computes in the command's own process (same seed, same machine, same result); with several
+GPUs the command's own process splits a cell's seeds over all of them and a child's over its
+one, so their last bits can differ and a checkpoint of one continues only in the other's way.
 
 The parent hands a child its cell, its seeds and the budget on stdin and reads its progress
 on its stdout, one `PROGRESS` line per generation (`python -m
