@@ -368,25 +368,25 @@ def _require_parts_alike(directory: pathlib.Path, budget: Budget, settings: dict
     merged = done_seeds(directory)
     split = _split(budget, merged)
     stem, _, extension = RESULT.partition(".")
-    ours = {part_file(RESULT, part) for part in split}
-    others = []
+    our_results = {part_file(RESULT, part) for part in split}
+    stray_results = []
     for done in sorted(directory.glob(f"{stem}{PART}*.{extension}")):
         result = json.loads(done.read_text())
         _require_same(directory, result["settings"], settings, task, done=True)
-        if done.name not in ours and max(result["seeds"]) > merged:
-            others.append(done.name)
-    if others:
+        if done.name not in our_results and max(result["seeds"]) > merged:
+            stray_results.append(done.name)
+    if stray_results:
         raise UsageError(f"{directory} holds parts of this cell done in another split "
-                         f"({', '.join(others)}); continue it with the --seeds and "
+                         f"({', '.join(stray_results)}); continue it with the --seeds and "
                          "--seeds-per-program it was started with, or remove them to run "
                          "their seeds again")
-    ours = {part_file(CHECKPOINTS, part) for part in split}
-    others = sorted(p.name for p in directory.glob(f"{CHECKPOINTS}*")
-                    if p.name not in ours and any(p.iterdir()))
-    if others:
-        whole = "whole" if CHECKPOINTS in others else "in parts"
+    our_checkpoints = {part_file(CHECKPOINTS, part) for part in split}
+    stray_checkpoints = sorted(p.name for p in directory.glob(f"{CHECKPOINTS}*")
+                               if p.name not in our_checkpoints and any(p.iterdir()))
+    if stray_checkpoints:
+        whole = "whole" if CHECKPOINTS in stray_checkpoints else "in parts"
         raise UsageError(f"{directory} holds checkpoints of this cell run {whole} "
-                         f"({', '.join(others)}); continue it with the --seeds and "
+                         f"({', '.join(stray_checkpoints)}); continue it with the --seeds and "
                          "--seeds-per-program it was started with, or remove them to run "
                          "it again")
 
