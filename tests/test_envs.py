@@ -1,6 +1,7 @@
 """Tests for pgps_jax.envs: the registry, the five MuJoCo tasks on MJX and the NaN guard.
 
-Each task's batched reset and step are jitted once (module-scoped fixtures) and reused.
+Each task's batched reset and step are jitted once (module-scoped fixtures) and reused, its
+tests on one pytest-xdist worker (a group per task) so that no other worker compiles them again.
 """
 
 import types
@@ -27,7 +28,8 @@ GYM_V4 = {
 TERMINATING = ("hopper", "walker2d", "ant")
 
 
-@pytest.fixture(scope="module", params=TASKS)
+@pytest.fixture(scope="module", params=[
+    pytest.param(name, marks=pytest.mark.xdist_group(f"env_{name}")) for name in TASKS])
 def task(request):
     env = make_env(request.param)
     return types.SimpleNamespace(name=request.param, env=env,
