@@ -589,7 +589,7 @@ def test_a_part_whose_checkpoint_was_lost_runs_again_from_its_start(in_parts, tm
     shutil.copy(done / "result_seeds2-2.json", cell)
     first = runner.parts(IN_PARTS)[0]
     _cut_off_after_generation_3(cell, first)
-    shutil.rmtree(cell / "checkpoints_seeds1-1")  # the machine went back with it
+    shutil.rmtree(cell / "checkpoints_seeds1-1")  # the part's checkpoint lost with its cut-off
     stale = (cell / "seed1_generations.csv").read_bytes()
     generations = []
     result = runner.run_cell(HOPPER, cell, IN_PARTS,

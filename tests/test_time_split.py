@@ -113,6 +113,7 @@ def test_table1_s_time_averages_each_model_s_normalised_phases_over_the_tasks():
                                        for model, row in zip(("base", "q_filter", "pgps"), rows)]}
              for task, rows in zip(("halfcheetah", "ant"), shares)]
     lines = table1_time(tasks).splitlines()
+    assert len(lines) >= 6  # header, rule, the three models' rows, a blank, the tasks
     expected = shares.mean(axis=0)  # the paper's average over its games
     for model, row, line in zip(("base", "q_filter", "pgps"), expected, lines[2:5]):
         cells = [c.strip() for c in line.strip("|").split("|")]

@@ -18,8 +18,8 @@ before the fused solve, on an H200, halfcheetah's physics at
 batch 40 takes 1.05 ms per env step with the first two instead of 1.33, and the ant's env step
 (2 solver iterations) at batch 60 7.56 ms with its iterations written out instead of 10.69
 (BENCHMARKS.md). They re-trace `mjx.step` (`rewrite`) and match its code by primitive, shape
-and parameter names, as MJX and JAX were in `WRITTEN_FOR`; where a later version no longer
-fits a rule, MJX's own code runs and one warning says which rule.
+and parameter names, as mujoco-mjx 3.17.0 and JAX 0.10.2 trace it; where a later version no
+longer fits a rule, MJX's own code runs and one warning says which rule.
 """
 
 from typing import Callable
@@ -31,10 +31,6 @@ from pgps_jax.envs.mjx_rewrites.line_search import unrolled_line_search
 from pgps_jax.envs.mjx_rewrites.rewrite import rewrite
 from pgps_jax.envs.mjx_rewrites.small_linalg import SMALL_LINALG
 from pgps_jax.envs.mjx_rewrites.solver_loop import unrolled_solver
-
-WRITTEN_FOR = {"mujoco-mjx": "3.17.0", "jax": "0.10.2"}
-"""The versions whose traced `mjx.step` the rules were written against and tested on."""
-
 
 def physics_step(model: mjx.Model, write_out_linalg: bool, unroll_line_search: bool,
                  unroll_solver: bool, fused_solve: bool,
