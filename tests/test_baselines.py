@@ -169,6 +169,52 @@ def test_cem_rl_trains_the_first_half_of_the_next_population():
     np.testing.assert_array_equal(np.asarray(flatten(new.td3.actor)), after[half - 1])
 
 
+def test_cem_rl_trains_its_actors_as_if_one_after_the_other():
+    """The authors' order (`es_grad.py`): for each actor in turn, the critic's block toward
+    that actor's target actions, then the actor's S updates against the critic as it stands."""
+    agent = agent_of("cemrl")
+    td3, c, half = agent.td3, agent.config, agent.num_trained
+    state = jax.jit(agent.init)(jax.random.PRNGKey(3))
+    state, played = jax.jit(agent.play)(state)
+    buffer = replay.add(state.buffer, played.transitions, played.valid)
+    key = jax.random.PRNGKey(4)
+    actors = agent.sample(jax.random.PRNGKey(5), state.cem)[:half]
+    steps = 24
+    got, trained, losses = jax.jit(agent.train_half)(state.td3, buffer, key, actors,
+                                                     jnp.asarray(steps))
+
+    critic_update, actor_update = jax.jit(td3.critic_update), jax.jit(td3.actor_update)
+    expected, ref, critic_total, actor_total = [], state.td3, 0.0, 0.0
+    for flat, actor_key in zip(actors, jax.random.split(key, half)):
+        actor = agent.actor(flat)
+        ref = ref.replace(actor=actor, actor_target=actor,
+                          actor_opt=td3.actor_optimizer.init(actor))
+        batch_key, noise_key, obs_key = jax.random.split(actor_key, 3)
+        for j in range(steps // half):
+            batch = replay.sample(buffer, jax.random.fold_in(batch_key, j), c.batch_size)
+            noise = td3.smoothing_noise(jax.random.fold_in(noise_key, j),
+                                        (c.batch_size, td3.action_size))
+            ref, loss = critic_update(ref, batch,
+                                      td3.target_actions(ref.actor_target, batch.next_obs, noise))
+            critic_total += float(loss)
+        for j in range(steps):
+            obs = replay.sample_obs(buffer, jax.random.fold_in(obs_key, j), c.batch_size)
+            ref, loss = actor_update(ref, obs, jnp.zeros((c.batch_size, td3.action_size)),
+                                     jnp.zeros(()))
+            actor_total += float(loss)
+        expected.append(np.asarray(flatten(ref.actor)))
+
+    assert np.abs(np.asarray(trained) - np.asarray(actors)).max() > 1e-4
+    np.testing.assert_allclose(np.asarray(trained), np.stack(expected), rtol=1e-4, atol=1e-6)
+    for name in ("critic", "critic_target", "critic_opt", "actor", "actor_target", "actor_opt"):
+        jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6),
+                     getattr(got, name), getattr(ref, name))
+    np.testing.assert_allclose(float(losses["td3/critic_loss"]),
+                               critic_total / (steps // half * half), rtol=1e-4)
+    np.testing.assert_allclose(float(losses["td3/actor_loss"]), actor_total / (steps * half),
+                               rtol=1e-4)
+
+
 @pytest.mark.parametrize("algo", ["cem", "td3", "cemrl"])
 def test_each_trains_through_the_command_on_the_point_mass(algo, tmp_path):
     warmup = "pgps.warmup_steps=0" if algo == "cem" else "pgps.warmup_steps=200"

@@ -94,47 +94,62 @@ class CEMRL(Agent):
                    actors: jax.Array, steps: jax.Array
                    ) -> tuple[TD3State, jax.Array, dict]:
         """Trains `actors` [N/2, P] one after the other with the shared critic (see the
-        module docstring); returns the critic's state, the trained actors and mean losses."""
+        module docstring); returns the critic's state, the trained actors and mean losses.
+
+        An actor's S updates move only that actor and its target, never the critic, so the
+        critic's blocks run in sequence first, each keeping the critic it ends with, and the
+        N/2 actors then train side by side, each against its own block's critic: the same
+        updates as one after the other, in N/2-fold fewer sequential steps."""
         td3, c = self.td3, self.config
         critic_updates = steps // self.num_trained
+        keys = jax.vmap(lambda k: jax.random.split(k, 3))(
+            jax.random.split(key, self.num_trained))       # [N/2, 3]: batch, noise, obs
 
-        def train_one(carry, inputs):
-            td3_state, critic_total, actor_total = carry
-            flat, actor_key = inputs
-            actor = self._unflatten(flat)
-            td3_state = td3_state.replace(actor=actor, actor_target=actor,
-                                          actor_opt=td3.actor_optimizer.init(actor))
-            batch_key, noise_key, obs_key = jax.random.split(actor_key, 3)
+        def critic_block(carry, inputs):
+            td3_state, total = carry
+            flat, (batch_key, noise_key, _) = inputs
+            actor_target = self._unflatten(flat)            # a copy of the actor to train
 
             def critic_step(j, carry):
                 td3_state, total = carry
                 batch = replay.sample(buffer, jax.random.fold_in(batch_key, j), c.batch_size)
                 noise = td3.smoothing_noise(jax.random.fold_in(noise_key, j),
                                             (c.batch_size, td3.action_size))
-                next_action = td3.target_actions(td3_state.actor_target, batch.next_obs, noise)
+                next_action = td3.target_actions(actor_target, batch.next_obs, noise)
                 td3_state, loss = td3.critic_update(td3_state, batch, next_action)
                 return td3_state, total + loss
 
-            def actor_step(j, carry):
-                td3_state, total = carry
-                obs = replay.sample_obs(buffer, jax.random.fold_in(obs_key, j), c.batch_size)
-                td3_state, loss = td3.actor_update(
-                    td3_state, obs, jnp.zeros((c.batch_size, td3.action_size)), jnp.zeros(()))
-                return td3_state, total + loss
-
-            td3_state, critic_total = repeat(critic_updates, critic_step,
-                                             (td3_state, critic_total), c.update_unroll)
-            td3_state, actor_total = repeat(steps, actor_step, (td3_state, actor_total),
-                                            c.update_unroll)
-            return (td3_state, critic_total, actor_total), flatten(td3_state.actor)
+            td3_state, total = repeat(critic_updates, critic_step, (td3_state, total),
+                                      c.update_unroll)
+            return (td3_state, total), td3_state.critic
 
         zero = jnp.zeros((), jnp.float32)
-        (td3_state, critic_total, actor_total), trained = jax.lax.scan(
-            train_one, (td3_state, zero, zero),
-            (actors, jax.random.split(key, self.num_trained)))
-        return td3_state, trained, {
+        (td3_state, critic_total), critics = jax.lax.scan(critic_block, (td3_state, zero),
+                                                         (actors, keys))
+
+        def train_actor(flat, critic, actor_keys):
+            actor = self._unflatten(flat)
+            state = td3_state.replace(critic=critic, actor=actor, actor_target=actor,
+                                      actor_opt=td3.actor_optimizer.init(actor))
+
+            def actor_step(j, carry):
+                state, total = carry
+                obs = replay.sample_obs(buffer, jax.random.fold_in(actor_keys[2], j),
+                                        c.batch_size)
+                state, loss = td3.actor_update(
+                    state, obs, jnp.zeros((c.batch_size, td3.action_size)), jnp.zeros(()))
+                return state, total + loss
+
+            state, total = repeat(steps, actor_step, (state, zero), c.update_unroll)
+            return state.actor, state.actor_target, state.actor_opt, total
+
+        actor, actor_target, actor_opt, actor_totals = jax.vmap(train_actor)(actors, critics,
+                                                                             keys)
+        last = jax.tree.map(lambda x: x[-1], (actor, actor_target, actor_opt))
+        td3_state = td3_state.replace(actor=last[0], actor_target=last[1], actor_opt=last[2])
+        return td3_state, jax.vmap(flatten)(actor), {
             "td3/critic_loss": critic_total / jnp.maximum(critic_updates * self.num_trained, 1),
-            "td3/actor_loss": actor_total / jnp.maximum(steps * self.num_trained, 1)}
+            "td3/actor_loss": actor_totals.sum() / jnp.maximum(steps * self.num_trained, 1)}
 
     def evaluated_actors(self, state: TrainState) -> jax.Array:
         return mean_and_elite(state)
