@@ -145,8 +145,8 @@ class CEMRL(Agent):
 
         actor, actor_target, actor_opt, actor_totals = jax.vmap(train_actor)(actors, critics,
                                                                              keys)
-        last = jax.tree.map(lambda x: x[-1], (actor, actor_target, actor_opt))
-        td3_state = td3_state.replace(actor=last[0], actor_target=last[1], actor_opt=last[2])
+        td3_state = td3_state.replace(**jax.tree.map(      # as the last actor trained left it
+            lambda x: x[-1], dict(actor=actor, actor_target=actor_target, actor_opt=actor_opt)))
         return td3_state, jax.vmap(flatten)(actor), {
             "td3/critic_loss": critic_total / jnp.maximum(critic_updates * self.num_trained, 1),
             "td3/actor_loss": actor_totals.sum() / jnp.maximum(steps * self.num_trained, 1)}
