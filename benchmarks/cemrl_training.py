@@ -12,6 +12,7 @@ updates, but their matrix products are batched differently, so their rounding ma
 and Adam carries such differences on from update to update.
 
     python -m benchmarks.cemrl_training --tasks halfcheetah ant
+    python -m benchmarks.cemrl_training --tasks halfcheetah --t-max 10 100 300 1000
     python -m benchmarks.cemrl_training --smoke      # tiny sizes: a CPU check
 
 Writes `benchmarks/results/cemrl_training.json`.
@@ -113,6 +114,9 @@ def measure(task: str, repeats: int, sizes: dict) -> dict:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--tasks", nargs="*", default=["halfcheetah"])
+    parser.add_argument("--t-max", nargs="*", type=int, default=[],
+                        help="episode caps T_max to measure at (S = N·T_max; default: the "
+                        "configuration's), e.g. to see the two orders drift apart with S")
     parser.add_argument("--repeats", type=int, default=3, help="timed runs of each program")
     parser.add_argument("--out", help="default: benchmarks/results/cemrl_training.json; with "
                         "--smoke, the same name in a temporary directory")
@@ -121,10 +125,13 @@ def main():
     out = results_path(args.out, "benchmarks/results/cemrl_training.json", args.smoke)
     os.makedirs(out.parent, exist_ok=True)
     result = {**provenance(), "tasks": []}
+    sizes = SMOKE_SIZES if args.smoke else {}
+    caps = [dict(t_max=t, t_init=t) for t in args.t_max] or [{}]
     for task in args.tasks:
-        result["tasks"].append(measure(task, args.repeats, SMOKE_SIZES if args.smoke else {}))
-        print(json.dumps(result["tasks"][-1]), flush=True)
-        out.write_text(json.dumps(result, indent=1))   # after every task: a cut-off run keeps
+        for cap in caps:
+            result["tasks"].append(measure(task, args.repeats, {**sizes, **cap}))
+            print(json.dumps(result["tasks"][-1]), flush=True)
+            out.write_text(json.dumps(result, indent=1))   # after each entry: a cut-off run keeps those done
 
 
 if __name__ == "__main__":
