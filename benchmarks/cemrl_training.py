@@ -131,7 +131,7 @@ def main():
         for cap in caps:
             result["tasks"].append(measure(task, args.repeats, {**sizes, **cap}))
             print(json.dumps(result["tasks"][-1]), flush=True)
-            out.write_text(json.dumps(result, indent=1))   # after each entry: a cut-off run keeps those done
+            out.write_text(json.dumps(result, indent=1))   # a cut-off run keeps those done
 
 
 if __name__ == "__main__":

@@ -93,7 +93,7 @@ class CEMRL(Agent):
     def train_half(self, td3_state: TD3State, buffer: replay.BufferState, key: jax.Array,
                    actors: jax.Array, steps: jax.Array
                    ) -> tuple[TD3State, jax.Array, dict]:
-        """Trains `actors` [N/2, P] one after the other with the shared critic (see the
+        """Trains `actors` [N/2, P] as if one after the other with the shared critic (see the
         module docstring); returns the critic's state, the trained actors and mean losses.
 
         An actor's S updates move only that actor and its target, never the critic, so the
