@@ -101,6 +101,8 @@ def test_render_without_opengl_names_what_to_install(task_runs, cache, tmp_path)
     (["policy=best"], ["policy='best'", "mu, td3, elite"]),
     (["out=episode.avi"], [".mp4 or .gif"]),
     (["colour=red"], ["unknown argument 'colour=red'"]),
+    (["out=missing/episode.gif"], ["out=missing/episode.gif: cannot write there",
+                                   "No such file"]),
 ])
 def test_render_bad_arguments(task_runs, tmp_path, args, words):
     run_dir, _ = task_runs("hopper")

@@ -63,6 +63,13 @@ def test_point_preset_is_tiny_and_valid():
     (["foo=1"], ["'foo'", "seed", "total_steps", "pgps.<field>"]),
     (["env=humanoid"], ["'humanoid'", "halfcheetah", "hopper", "walker2d", "ant", "swimmer"]),
     (["env.name=hopper"], ["env=<task>"]),
+    (["env=[hopper,ant]"], ["env= takes one task", "halfcheetah", "swimmer"]),
+    (["algo=[td3,cem]"], ["algo= takes one algorithm", "cemrl", "pgps"]),
+    (["pgps=5"], ["pgps=5 is not a setting", "pgps.<field>=value", "pop_size"]),
+    (["pgps={pop_size:4,bogus:1}"], ["pgps.<field>=value", "top_k"]),
+    (["env=hopper", "foo"], ["'foo' is not a setting", "key=value", "total_steps"]),
+    (["algo=td3", "pgps.q_filter=true"], ["pgps.q_filter", "algo=td3 has none", "algo=pgps"]),
+    (["algo=cemrl", "pgps.ea_guides_pg=true"], ["pgps.ea_guides_pg", "increasing_steps"]),
 ])
 def test_check_overrides_names_the_key_and_the_choices(args, words):
     with pytest.raises(UsageError) as err:
@@ -73,7 +80,8 @@ def test_check_overrides_names_the_key_and_the_choices(args, words):
 
 def test_check_overrides_accepts_valid_and_hydra_flags():
     check_overrides(["env=hopper", "seed=3", "pgps.q_filter=false", "resume=true",
-                     "hydra.verbose=true", "--cfg", "job"])
+                     "hydra.verbose=true", "--cfg", "job", "pgps={pop_size:4}"])
+    check_overrides(["algo=pgps", "pgps.q_filter=false", "pgps.increasing_steps=false"])
 
 
 @pytest.mark.parametrize("values, words", [

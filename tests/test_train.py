@@ -127,6 +127,36 @@ def test_evaluate_reproduces_the_last_evaluation(reference, cache, tmp_path):
     assert strip(rows[0]) == strip(training[-1])
 
 
+@pytest.mark.parametrize("args, words", [
+    (["out=missing/re.csv"], ["out=missing/re.csv: cannot write there", "No such file"]),
+    (["steps=0"], ["steps must be >= 1"]),
+    (["episodes=0"], ["episodes must be >= 1"]),
+    (["length=5"], ["unknown argument 'length=5'", "steps=..."]),
+])
+def test_evaluate_refuses_bad_arguments_before_playing(reference, tmp_path, args, words):
+    run_dir, _ = reference
+    result = run_here("evaluate", [f"run={run_dir}", *args], tmp_path)
+    assert result.returncode == 2
+    for word in words:
+        assert word in result.stderr
+    assert result.stdout == "" and "Traceback" not in result.stderr  # nothing was played
+
+
+def test_evaluate_plays_episodes_of_the_steps_asked_for(reference, tmp_path):
+    run_dir, _ = reference
+    result = run_here("evaluate", [f"run={run_dir}", "steps=7", "episodes=3"], tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "3 episodes of 7 steps" in result.stdout
+
+
+@pytest.mark.parametrize("command", ["evaluate", "render"])
+def test_the_tools_print_their_usage_on_help(command, tmp_path):
+    result = run_here(command, ["--help"], tmp_path)
+    assert result.returncode == 0 and result.stderr == ""
+    assert f"python -m pgps_jax.{command} run=<dir>" in result.stdout
+    assert "Arguments (key=value)" in result.stdout
+
+
 def test_render_refuses_a_task_without_a_mujoco_model(reference, tmp_path):
     run_dir, _ = reference
     result = run_here("render", [f"run={run_dir}", f"out={tmp_path / 'x.gif'}"], tmp_path)
@@ -250,6 +280,24 @@ def test_resume_by_directory_refuses_other_explicit_settings(reference, tmp_path
     assert result.returncode == 2
     assert "env.name: checkpoint 'point', now 'hopper'" in result.stderr
     assert _snapshot(run_dir) == before
+
+
+def test_resume_by_directory_takes_settings_equal_to_the_checkpoint_s(reference):
+    """Each of these values, alone, breaks a rule against the command line's defaults
+    (top_k=5 > pop_size, t_init=400 > t_max, warmup_steps=10,000 > buffer_size); against the
+    checkpoint's settings, which they repeat, they hold."""
+    from pgps_jax.cli.plan import plan
+    run_dir, _ = reference
+    overrides = [f"resume={run_dir}", "pgps.pop_size=4", "pgps.t_max=50",
+                 "pgps.buffer_size=5000"]
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        values = OmegaConf.to_container(compose("config", overrides=overrides), resolve=True)
+    planned = plan(values, overrides)
+    planned.lock.release()
+    assert planned.resume_step == max(checkpoint_steps(run_dir))
+    saved = OmegaConf.to_container(OmegaConf.load(run_dir / rundir.CONFIG), resolve=True)
+    _, config = from_dict(saved)
+    assert planned.config == config
 
 
 def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(

@@ -216,6 +216,11 @@ def for_task(task: str, algo: str = "pgps", **overrides) -> PGPSConfig:
     return PGPSConfig(**{**_TASK_PRESETS[task], **algorithm_preset(algo), **overrides})
 
 
+SWITCHES = ("pg_guides_ea", "ea_guides_pg", "q_filter", "increasing_steps")
+"""PGPS's four couplings as `PGPSConfig` fields (Table 1's models differ in these alone; a
+`Couplings` carries them); the baselines have none of them."""
+
+
 def check_for_algorithm(algo: str, config: "PGPSConfig") -> None:
     """Raises ValueError naming a field whose value `algo` cannot run with (CEM alone has no
     replay buffer to warm up)."""

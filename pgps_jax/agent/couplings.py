@@ -27,10 +27,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from pgps_jax.agent.config import PGPSConfig, effective_fields
-
-SWITCHES = ("pg_guides_ea", "ea_guides_pg", "q_filter", "increasing_steps")
-"""The `PGPSConfig` fields a `Couplings` carries (Table 1's models differ in these alone)."""
+from pgps_jax.agent.config import SWITCHES, PGPSConfig, effective_fields
 
 
 @chex.dataclass(frozen=True)

@@ -276,7 +276,7 @@ class PGPS(Agent):
                             lambda population: population, population)
 
     def switch(self, state: TrainState, coupling: str) -> bool | jax.Array:
-        """Whether `coupling` (`couplings.SWITCHES`) is on: the configuration's, a Python bool,
+        """Whether `coupling` (`config.SWITCHES`) is on: the configuration's, a Python bool,
         or the state's own, a bool array, where it carries `Couplings`."""
         if state.couplings is None:
             return bool(getattr(self.config, coupling))

@@ -11,13 +11,12 @@ from PRNGKey(seed + 100)) the first line (the reported actor: μ, or TD3 alone's
 reproduces the run's last row of eval.csv.
 
 Arguments (key=value): run (required); episodes (default: the run's eval_episodes);
-seed (the evaluation key is PRNGKey(seed); default: the run's seed + 100);
-out (write the reported actor's result as a CSV in the reference format: ,Step,Mean,Std,
+steps (a test episode's step limit; default: the run's eval_steps); seed (the evaluation key
+is PRNGKey(seed); default: the run's seed + 100); out (write the reported actor's result as a CSV in the reference format: ,Step,Mean,Std,
 Reward1..).
 """
 
 import dataclasses
-import pathlib
 import sys
 from typing import TYPE_CHECKING, Mapping, Optional, Sequence
 
@@ -26,7 +25,7 @@ import numpy as np
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import EXIT_OK, UsageError, report
-from pgps_jax.cli.tool_args import load_run, parse_args
+from pgps_jax.cli.tool_args import load_run, parse_args, require_writable
 
 if TYPE_CHECKING:
     import jax
@@ -55,19 +54,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 
 def _evaluate(argv: Sequence[str]) -> int:
-    args = parse_args(argv, {"run": str, "episodes": int, "seed": int, "out": str},
-                      required=("run",))
+    args = parse_args(argv, {"run": str, "episodes": int, "steps": int, "seed": int,
+                             "out": str}, __doc__, required=("run",))
     settings, config, saved = load_run(args["run"])
-    if args.get("episodes", 1) < 1:
-        raise UsageError("episodes must be >= 1")
+    for name in ("episodes", "steps"):
+        if args.get(name, 1) < 1:
+            raise UsageError(f"{name} must be >= 1")
+    out = require_writable(args["out"]) if "out" in args else None
     import jax  # only once the arguments are known to be good
 
     from pgps_jax.cli import run_physics
     env = run_physics.run_env(args["run"], settings.env, settings.physics)
     key_seed = args.get("seed", settings.seed + 100)
     evaluation = settings.evaluation
-    if "episodes" in args:
-        evaluation = dataclasses.replace(evaluation, episodes=args["episodes"])
+    evaluation = dataclasses.replace(evaluation, **{name: args[name] for name in
+                                                    ("episodes", "steps") if name in args})
     results = evaluate_actors(settings.algo, config, evaluation, env, saved,
                               jax.random.PRNGKey(key_seed))
     print(f"{args['run']}: {settings.algo} on {settings.env}, generation {saved['generation']}, "
@@ -76,12 +77,12 @@ def _evaluate(argv: Sequence[str]) -> int:
     for name, r in results.items():
         print(f"  {name:6s} {r['mean']:12.4f} ± {r['std']:10.4f}   "
               + " ".join(f"{float(x):.2f}" for x in r["returns"]))
-    if "out" in args:
+    if out is not None:
         reported = next(iter(results.values()))
         header = rundir.eval_columns(len(reported["returns"]))
         line = [0, saved["env_steps"], reported["mean"], reported["std"],
                 *map(float, reported["returns"])]
         text = ",".join(header) + "\n" + ",".join(rundir.cell(c) for c in line) + "\n"
-        rundir.write_atomic(pathlib.Path(args["out"]).absolute(), text.encode())
+        rundir.write_atomic(out, text.encode())
         print(f"wrote {args['out']}")
     return EXIT_OK

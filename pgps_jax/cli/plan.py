@@ -10,7 +10,8 @@ from pgps_jax.agent.config import VALUES_BEFORE_ADDED, PGPSConfig, effective_fie
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.cli.run_config import (IDENTITY_KEYS, RunSettings, differences, explicitly_set,
-                                     flatten, from_dict, override_keys, require_training)
+                                     flatten, from_dict, override_keys, require_training,
+                                     run_settings)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,8 +113,9 @@ def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
     (`run_physics.IDENTITY_KEYS`).
     """
     values = copy.deepcopy(dict(values))
-    run, config = from_dict(values)
+    run = run_settings(values)  # the PGPSConfig is checked once the checkpoint's is merged in
     if run.resume is False:
+        run, config = from_dict(values)
         require_training(run, config)
         run = _recording_physics(run, values)
         directory = rundir.RunDir(run.run_dir)
@@ -133,18 +135,19 @@ def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
     directory.ensure_writable()
     lock = directory.lock()
     try:
-        return _plan_resume(run, config, values, overrides, directory, lock, by_path)
+        return _plan_resume(run, values, overrides, directory, lock, by_path)
     except BaseException:
         lock.release()
         raise
 
 
-def _plan_resume(run: RunSettings, config: PGPSConfig, values: dict, overrides: Sequence[str],
+def _plan_resume(run: RunSettings, values: dict, overrides: Sequence[str],
                  directory: rundir.RunDir, lock: rundir.RunLock, by_path: bool) -> Plan:
     """`plan` for resume=true or resume=<dir>, once the directory is locked."""
     if not directory.has_checkpoint():
         if by_path:
             raise UsageError(f"resume={run.resume}: {directory.checkpoints} holds no checkpoint")
+        run, config = from_dict(values)
         require_training(run, config)
         print(f"resume=true: no checkpoint in {directory.path}; starting a new run there",
               file=sys.stderr)

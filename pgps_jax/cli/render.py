@@ -33,7 +33,7 @@ import numpy as np
 
 from pgps_jax.agent.config import TASK_NAMES
 from pgps_jax.cli.errors import EXIT_OK, UsageError, report
-from pgps_jax.cli.tool_args import load_run, parse_args
+from pgps_jax.cli.tool_args import load_run, parse_args, require_writable
 
 _GL_HELP = ("MuJoCo's offscreen rendering needs OpenGL without a display: install EGL "
             "(Debian/Ubuntu: apt-get install libegl1) and set MUJOCO_GL=egl, or OSMesa "
@@ -122,7 +122,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 def _render(argv: Sequence[str]) -> int:
     args = parse_args(argv, {"run": str, "out": str, "policy": str, "steps": int,
                              "width": int, "height": int, "camera": str, "max_fps": float},
-                      required=("run",))
+                      __doc__, required=("run",))
     settings, config, saved = load_run(args["run"])
     saved_actors = [k for k in saved if k not in ("generation", "env_steps")]
     policy = args.get("policy", saved_actors[0])
@@ -139,6 +139,7 @@ def _render(argv: Sequence[str]) -> int:
     if out.suffix.lower() == ".mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
         raise UsageError("writing an MP4 needs imageio-ffmpeg (pip install imageio-ffmpeg); "
                          "or choose out=<name>.gif")
+    require_writable(str(out))
     if settings.env not in TASK_NAMES:
         raise UsageError(f"env {settings.env!r} has no MuJoCo model to render; "
                          f"render a run of {', '.join(TASK_NAMES)}")

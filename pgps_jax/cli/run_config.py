@@ -13,7 +13,7 @@ import pathlib
 import typing
 from typing import Any, Iterable, Mapping, Optional, Sequence
 
-from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, check_for_algorithm
+from pgps_jax.agent.config import SWITCHES, EvaluationConfig, PGPSConfig, check_for_algorithm
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.field_types import mismatch
 
@@ -132,28 +132,48 @@ def check_overrides(args: Sequence[str]) -> None:
 
     Hydra would reject an unknown key too, but without saying what is valid.
     """
-    for o in parse_overrides(args):
+    for i, arg in enumerate(args):  # a flag's value (--cfg job) follows its flag
+        if "=" not in arg and not arg.startswith("-") and not (i and args[i - 1].startswith("-")):
+            raise UsageError(f"{arg!r} is not a setting: write key=value; "
+                             f"{_valid_settings_text()}")
+    overrides = parse_overrides(args)
+    algo = next((o.value() for o in overrides if o.key_or_group == "algo"), "pgps")
+    for o in overrides:
+        switch = o.key_or_group[len("pgps."):]
+        if algo != "pgps" and o.key_or_group.startswith("pgps.") and switch in SWITCHES:
+            raise UsageError(f"{o.key_or_group} is one of PGPS's couplings "
+                             f"({', '.join(SWITCHES)}); algo={algo} has none of them, they "
+                             f"apply to algo=pgps")
+    for o in overrides:
         key = o.key_or_group
         if key.startswith("hydra") or key in _RUN_KEYS:
             continue
         if key == "env":
             value = o.value()
-            if isinstance(value, str) and value not in env_choices():
-                raise UsageError(f"unknown env {value!r}; choices: {', '.join(env_choices())}")
+            if not isinstance(value, str) or value not in env_choices():
+                raise UsageError(f"unknown env {value!r}: env= takes one task; choices: "
+                                 f"{', '.join(env_choices())}")
             continue
         if key == "env.name":
             raise UsageError("set the task with env=<task>, not env.name "
                              f"(choices: {', '.join(env_choices())})")
         if key == "algo":
             value = o.value()
-            if isinstance(value, str) and value not in algo_choices():
-                raise UsageError(f"unknown algo {value!r}; choices: "
-                                 f"{', '.join(algo_choices())}")
+            if not isinstance(value, str) or value not in algo_choices():
+                raise UsageError(f"unknown algo {value!r}: algo= takes one algorithm; "
+                                 f"choices: {', '.join(algo_choices())}")
             continue
         if key.startswith("algo."):
             raise UsageError("set the algorithm with algo=<name>, not algo.name "
                              f"(choices: {', '.join(algo_choices())})")
         if key == "pgps":
+            value = o.value()
+            unknown = (sorted(set(value) - set(PGPS_FIELDS)) if isinstance(value, dict)
+                       else None)
+            if unknown != []:
+                raise UsageError(f"pgps={o.input_line.split('=', 1)[1]} is not a setting: set "
+                                 f"PGPSConfig's fields as pgps.<field>=value, one of: "
+                                 f"{', '.join(PGPS_FIELDS)}")
             continue
         if key.startswith("physics."):
             if key[len("physics."):] not in physics_fields():

@@ -1,17 +1,24 @@
 """The `key=value` arguments of the tool commands (`evaluate`, `render`) and the saved run they
 name. Imports neither JAX nor MuJoCo, so a command checks its input before loading either."""
 
+import pathlib
+import sys
+import tempfile
 from typing import Callable, Mapping, Sequence
 
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.agent.config import PGPSConfig
-from pgps_jax.cli.errors import UsageError
+from pgps_jax.cli.errors import EXIT_OK, UsageError, describe_os_error
 from pgps_jax.cli.run_config import RunSettings, from_dict
 
 
-def parse_args(argv: Sequence[str], types: Mapping[str, Callable],
+def parse_args(argv: Sequence[str], types: Mapping[str, Callable], usage: str,
                required: Sequence[str] = ()) -> dict:
-    """`key=value` arguments -> {key: types[key](value)}; UsageError naming a bad one."""
+    """`key=value` arguments -> {key: types[key](value)}; UsageError naming a bad one.
+    `-h` or `--help` prints `usage` (the command's docstring) and exits."""
+    if "-h" in argv or "--help" in argv:
+        print(usage.strip())
+        sys.exit(EXIT_OK)
     values = {}
     for arg in argv:
         key, sep, text = arg.partition("=")
@@ -36,3 +43,15 @@ def load_run(path: str) -> tuple[RunSettings, PGPSConfig, dict]:
         raise UsageError(f"run={path}: no such run directory")
     settings, config = from_dict(directory.read_config())
     return settings, config, rundir.load_actors(directory / rundir.ACTORS)
+
+
+def require_writable(out: str) -> pathlib.Path:
+    """`out` as an absolute path, once a file can be written beside it (before any work
+    whose result it would hold); UsageError naming the cause otherwise."""
+    path = pathlib.Path(out).absolute()
+    try:
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}."):
+            pass
+    except OSError as e:
+        raise UsageError(f"out={out}: cannot write there: {describe_os_error(e)}") from None
+    return path
