@@ -12,8 +12,8 @@ reproduces the run's last row of eval.csv.
 
 Arguments (key=value): run (required); episodes (default: the run's eval_episodes);
 steps (a test episode's step limit; default: the run's eval_steps); seed (the evaluation key
-is PRNGKey(seed); default: the run's seed + 100); out (write the reported actor's result as a CSV in the reference format: ,Step,Mean,Std,
-Reward1..).
+is PRNGKey(seed); default: the run's seed + 100); out (write the reported actor's result as a
+CSV in the reference format: ,Step,Mean,Std,Reward1..).
 """
 
 import dataclasses

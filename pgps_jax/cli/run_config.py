@@ -128,7 +128,8 @@ def parse_overrides(args: Sequence[str]) -> list:
 
 
 def check_overrides(args: Sequence[str]) -> None:
-    """Checks command-line overrides before Hydra composes them: unknown keys and tasks.
+    """Checks command-line overrides before Hydra composes them: unknown keys, tasks and
+    algorithms, words that are not key=value, and PGPS's couplings set for a baseline.
 
     Hydra would reject an unknown key too, but without saying what is valid.
     """
@@ -137,13 +138,6 @@ def check_overrides(args: Sequence[str]) -> None:
             raise UsageError(f"{arg!r} is not a setting: write key=value; "
                              f"{_valid_settings_text()}")
     overrides = parse_overrides(args)
-    algo = next((o.value() for o in overrides if o.key_or_group == "algo"), "pgps")
-    for o in overrides:
-        switch = o.key_or_group[len("pgps."):]
-        if algo != "pgps" and o.key_or_group.startswith("pgps.") and switch in SWITCHES:
-            raise UsageError(f"{o.key_or_group} is one of PGPS's couplings "
-                             f"({', '.join(SWITCHES)}); algo={algo} has none of them, they "
-                             f"apply to algo=pgps")
     for o in overrides:
         key = o.key_or_group
         if key.startswith("hydra") or key in _RUN_KEYS:
@@ -190,6 +184,12 @@ def check_overrides(args: Sequence[str]) -> None:
                                  f"pgps.<field> must be one of: {', '.join(PGPS_FIELDS)}")
             continue
         raise UsageError(f"unknown setting {key!r}; {_valid_settings_text()}")
+    algo = next((o.value() for o in overrides if o.key_or_group == "algo"), "pgps")
+    for o in overrides:
+        if algo != "pgps" and o.key_or_group in {f"pgps.{s}" for s in SWITCHES}:
+            raise UsageError(f"{o.key_or_group} is one of PGPS's couplings "
+                             f"({', '.join(SWITCHES)}); algo={algo} has none of them, they "
+                             f"apply to algo=pgps")
 
 
 def coerce(key: str, value: Any, kind: Any) -> Any:
