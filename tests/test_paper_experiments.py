@@ -780,6 +780,9 @@ def test_seeds_are_split_over_the_devices(tmp_path):
     cell = json.loads((tmp_path / "figure4" / "hopper" / "pgps" / runner.RESULT).read_text())
     assert cell["device"].startswith("2 × ") and cell["seeds"] == [1, 2, 3]
     assert len(cell["final"]["mu"]) == 3 and np.all(np.isfinite(cell["final"]["mu"]))
+    mu = cell["final"]["mu"]  # the command's closing line for the cell
+    assert (f"figure4 hopper pgps: seeds 1, 2, 3 done at {min(cell['env_steps']):,} env steps "
+            f"or more; final mu {np.mean(mu):,.1f} ± {np.std(mu, ddof=1):,.1f}") in result.stdout
     assert sorted(p.name for p in (tmp_path / "figure4" / "hopper" / "pgps").glob("*.csv")) == [
         runner.GENERATION_TIMES] + [f"seed{k}{kind}.csv" for k in (1, 2, 3)
                                     for kind in ("", "_elite", "_generations", "_td3")]

@@ -94,6 +94,18 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
     return results
 
 
+def cell_summary(experiment: str, result: dict) -> str:
+    """One line of a done cell: its seeds' final returns, mean ± sample std per actor."""
+    def mean_std(returns) -> str:
+        spread = np.std(returns, ddof=1) if len(returns) > 1 else 0.0
+        return f"{np.mean(returns):,.1f} ± {spread:,.1f}"
+    finals = "; ".join(f"{actor} {mean_std(returns)}"
+                       for actor, returns in result["final"].items())
+    return (f"{experiment} {result['task']} {result['config']}: seeds "
+            f"{', '.join(map(str, result['seeds']))} done at {min(result['env_steps']):,} env "
+            f"steps or more; final {finals}")
+
+
 def _summarise(experiment: str, out: pathlib.Path, reference: pathlib.Path,
                failing: bool = False) -> None:
     """`write_summary` of every done cell, whatever became of the others; while the run
@@ -258,9 +270,11 @@ def main(argv=None) -> int:
         environ = dict(os.environ)
         if args.concurrent > 1:  # this process only schedules: the GPUs' memory is the cells'
             os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-        run(args.experiment, args.out, budget, args.tasks, args.configs,
-            progress=not args.no_progress, reference=args.reference,
-            concurrent=args.concurrent, child_environ=environ)
+        results = run(args.experiment, args.out, budget, args.tasks, args.configs,
+                      progress=not args.no_progress, reference=args.reference,
+                      concurrent=args.concurrent, child_environ=environ)
+        for result in results:
+            print(cell_summary(args.experiment, result))
         return 0
 
     try:
