@@ -818,6 +818,8 @@ def test_the_grids_hold_the_paper_s_cells():
     (["figure4", "--set", "pop_sise=4"], ["--set 'pop_sise=4'", "pop_size"]),
     (["figure4", "--set", "q_filter=maybe"], ["--set q_filter must be true or false"]),
     (["table1", "--set", "q_filter=true"], ["--set q_filter", "sets it itself"]),
+    (["figure4", "--configs", "td3", "--set", "increasing_steps=false"],
+     ["--set increasing_steps: PGPS's couplings", "swimmer td3 has none", "--configs pgps"]),
     (["figure4", "--steps", "5000"], ["--steps 5000 does not exceed the random warm-up"]),
     (["figure4", "--set", "top_k=99"], ["top_k=99", "pop_size"]),
     (["figure4", "--eval", "often=3"], ["--eval 'often=3'", "every, episodes, steps"]),

@@ -28,7 +28,8 @@ from typing import Optional
 import numpy as np
 from tqdm import tqdm
 
-from pgps_jax.agent.config import EvaluationConfig, PGPSConfig, check_for_algorithm, for_task
+from pgps_jax.agent.config import (SWITCHES, EvaluationConfig, PGPSConfig, check_for_algorithm,
+                                    for_task)
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.assignments import assignments, env_assignments, field_types
 from pgps_jax.cli.errors import EXIT_INTERRUPTED, UsageError, print_error, report
@@ -70,6 +71,11 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
         if clash:
             raise UsageError(f"--set {', '.join(clash)}: the {experiment} cell {cell.task} "
                              f"{cell.config} sets it itself")
+        couplings = sorted(set(SWITCHES) & set(dict(budget.overrides)))
+        if couplings and cell.algo != "pgps":
+            raise UsageError(f"--set {', '.join(couplings)}: PGPS's couplings; the "
+                             f"{experiment} cell {cell.task} {cell.config} has none of them "
+                             f"(choose --configs pgps)")
         try:
             config = for_task(cell.task, cell.algo, **dict(cell.overrides),
                               **dict(budget.overrides))
