@@ -67,6 +67,9 @@ def test_point_preset_is_tiny_and_valid():
     (["algo=[td3,cem]"], ["algo= takes one algorithm", "cemrl", "pgps"]),
     (["pgps=5"], ["pgps=5 is not a setting", "pgps.<field>=value", "pop_size"]),
     (["pgps={pop_size:4,bogus:1}"], ["pgps.<field>=value", "top_k"]),
+    (["-m", "env=hopper,ant"], ["env=hopper,ant: env= takes one task", "walker2d"]),
+    (["algo=td3", "pgps={q_filter:true}"], ["pgps.q_filter", "algo=td3 has none"]),
+    (["-m", "foo"], ["'foo' is not a setting"]),
     (["env=hopper", "foo"], ["'foo' is not a setting", "key=value", "total_steps"]),
     (["algo=td3", "pgps.q_filter=true"], ["pgps.q_filter", "algo=td3 has none", "algo=pgps"]),
     (["algo=cemrl", "pgps.ea_guides_pg=true"], ["pgps.ea_guides_pg", "increasing_steps"]),
@@ -82,6 +85,7 @@ def test_check_overrides_accepts_valid_and_hydra_flags():
     check_overrides(["env=hopper", "seed=3", "pgps.q_filter=false", "resume=true",
                      "hydra.verbose=true", "--cfg", "job", "pgps={pop_size:4}"])
     check_overrides(["algo=pgps", "pgps.q_filter=false", "pgps.increasing_steps=false"])
+    check_overrides(["pgps=table3", "~pgps.q_filter", "--config-name", "config"])
 
 
 @pytest.mark.parametrize("values, words", [

@@ -130,6 +130,7 @@ def test_evaluate_reproduces_the_last_evaluation(reference, cache, tmp_path):
 @pytest.mark.parametrize("args, words", [
     (["out=missing/re.csv"], ["out=missing/re.csv: cannot write there", "No such file"]),
     (["steps=0"], ["steps must be >= 1"]),
+    (["out="], ["out=: name a file to write, not a folder"]),
     (["episodes=0"], ["episodes must be >= 1"]),
     (["length=5"], ["unknown argument 'length=5'", "steps=..."]),
 ])
@@ -144,9 +145,12 @@ def test_evaluate_refuses_bad_arguments_before_playing(reference, tmp_path, args
 
 def test_evaluate_plays_episodes_of_the_steps_asked_for(reference, tmp_path):
     run_dir, _ = reference
-    result = run_here("evaluate", [f"run={run_dir}", "steps=7", "episodes=3"], tmp_path)
-    assert result.returncode == 0, result.stderr[-2000:]
-    assert "3 episodes of 7 steps" in result.stdout
+    short, full = (run_here("evaluate", [f"run={run_dir}", *args, "episodes=3"], tmp_path)
+                   for args in (["steps=7"], []))
+    assert short.returncode == 0 and full.returncode == 0, short.stderr[-2000:]
+    assert "3 episodes of 7 steps" in short.stdout and "3 episodes of 50 steps" in full.stdout
+    mu = lambda result: [line for line in result.stdout.splitlines() if "mu" in line][0]
+    assert mu(short) != mu(full)  # the returns of 7 steps, not of the run's 50
 
 
 @pytest.mark.parametrize("command", ["evaluate", "render"])
@@ -171,6 +175,8 @@ def test_render_refuses_a_task_without_a_mujoco_model(reference, tmp_path):
     (["learning_rate=1"], ["'learning_rate'", "total_steps"]),
     (["pgps.top_k=99"], ["top_k=99", "pop_size"]),
     (["pgps.q_filter=maybe"], ["pgps.q_filter", "true or false"]),
+    (["resume=true", "pgps.top_k=99"], ["top_k=99", "pop_size"]),
+    (["resume=true", "pgps.q_filter=maybe"], ["pgps.q_filter", "true or false"]),
 ])
 def test_bad_settings_fail_before_anything_is_written(args, words, tmp_path):
     run_dir = tmp_path / "run"

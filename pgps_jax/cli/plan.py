@@ -10,8 +10,7 @@ from pgps_jax.agent.config import VALUES_BEFORE_ADDED, PGPSConfig, effective_fie
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.cli.run_config import (IDENTITY_KEYS, RunSettings, differences, explicitly_set,
-                                     flatten, from_dict, override_keys, require_training,
-                                     run_settings)
+                                     flatten, from_dict, override_keys, require_training)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,41 +112,52 @@ def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
     (`run_physics.IDENTITY_KEYS`).
     """
     values = copy.deepcopy(dict(values))
-    run = run_settings(values)  # the PGPSConfig is checked once the checkpoint's is merged in
-    if run.resume is False:
+    resume = values.get("resume")
+    by_path = isinstance(resume, str) and resume != ""
+    if by_path:  # its settings are checked once merged with the checkpoint's
+        run, config = None, None
+        directory = rundir.RunDir(resume)
+        if not directory.path.is_dir():
+            raise UsageError(f"resume={resume}: no such run directory")
+    else:
         run, config = from_dict(values)
-        require_training(run, config)
-        run = _recording_physics(run, values)
+        if run.resume is False:
+            return _plan_new(run, config, values)
         directory = rundir.RunDir(run.run_dir)
-        directory.ensure_writable()
-        lock = directory.lock()
-        if directory.holds_run():
-            lock.release()
-            raise UsageError(
-                f"{directory.path} already holds a run; continue it with resume=true, or "
-                f"choose another directory with run_dir=... (or output_dir=...)")
-        return Plan(run, config, values, directory, lock, None)
-
-    by_path = run.resume is not True
-    directory = rundir.RunDir(run.resume if by_path else run.run_dir)
-    if by_path and not directory.path.is_dir():
-        raise UsageError(f"resume={run.resume}: no such run directory")
     directory.ensure_writable()
     lock = directory.lock()
     try:
-        return _plan_resume(run, values, overrides, directory, lock, by_path)
+        return _plan_resume(run, config, values, overrides, directory, lock)
     except BaseException:
         lock.release()
         raise
 
 
-def _plan_resume(run: RunSettings, values: dict, overrides: Sequence[str],
-                 directory: rundir.RunDir, lock: rundir.RunLock, by_path: bool) -> Plan:
-    """`plan` for resume=true or resume=<dir>, once the directory is locked."""
+def _plan_new(run: RunSettings, config: PGPSConfig, values: dict) -> Plan:
+    """`plan` for resume=false: a new run in run_dir, which must not hold one already."""
+    require_training(run, config)
+    run = _recording_physics(run, values)
+    directory = rundir.RunDir(run.run_dir)
+    directory.ensure_writable()
+    lock = directory.lock()
+    if directory.holds_run():
+        lock.release()
+        raise UsageError(
+            f"{directory.path} already holds a run; continue it with resume=true, or "
+            f"choose another directory with run_dir=... (or output_dir=...)")
+    return Plan(run, config, values, directory, lock, None)
+
+
+def _plan_resume(run: Optional[RunSettings], config: Optional[PGPSConfig], values: dict,
+                 overrides: Sequence[str], directory: rundir.RunDir,
+                 lock: rundir.RunLock) -> Plan:
+    """`plan` for resume=true (`run` and `config` the command's) or resume=<dir> (None: the
+    checkpoint's, with the command's settings merged in), once the directory is locked."""
+    by_path = run is None
     if not directory.has_checkpoint():
         if by_path:
-            raise UsageError(f"resume={run.resume}: {directory.checkpoints} holds no checkpoint")
-        run, config = from_dict(values)
+            raise UsageError(f"resume={values['resume']}: {directory.checkpoints} holds no "
+                             f"checkpoint")
         require_training(run, config)
         print(f"resume=true: no checkpoint in {directory.path}; starting a new run there",
               file=sys.stderr)
@@ -163,7 +173,7 @@ def _plan_resume(run: RunSettings, values: dict, overrides: Sequence[str],
         for key, value in flatten(values).items():
             if explicitly_set(key, explicit):
                 _set(effective, key, value)
-        effective["resume"], effective["run_dir"] = run.resume, str(directory.path)
+        effective["resume"], effective["run_dir"] = values["resume"], str(directory.path)
     diffs = differences(_comparable(saved), _comparable(effective), IDENTITY_KEYS)
     if not diffs:  # the same task: the same physics too
         effective["physics"] = _recorded_physics(effective["env"]["name"], effective)

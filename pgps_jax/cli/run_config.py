@@ -127,6 +127,11 @@ def parse_overrides(args: Sequence[str]) -> list:
         raise UsageError(f"cannot parse the command line: {e}") from None
 
 
+_HYDRA_FLAGS_WITH_VALUES = ("--cfg", "-c", "--package", "-p", "--config-name", "-cn",
+                            "--config-path", "-cp", "--config-dir", "-cd", "--info", "-i")
+"""Hydra's flags that take a value: the word after one is not a setting."""
+
+
 def check_overrides(args: Sequence[str]) -> None:
     """Checks command-line overrides before Hydra composes them: unknown keys, tasks and
     algorithms, words that are not key=value, and PGPS's couplings set for a baseline.
@@ -134,7 +139,8 @@ def check_overrides(args: Sequence[str]) -> None:
     Hydra would reject an unknown key too, but without saying what is valid.
     """
     for i, arg in enumerate(args):  # a flag's value (--cfg job) follows its flag
-        if "=" not in arg and not arg.startswith("-") and not (i and args[i - 1].startswith("-")):
+        if ("=" not in arg and not arg.startswith(("-", "~"))
+                and not (i and args[i - 1] in _HYDRA_FLAGS_WITH_VALUES)):
             raise UsageError(f"{arg!r} is not a setting: write key=value; "
                              f"{_valid_settings_text()}")
     overrides = parse_overrides(args)
@@ -144,8 +150,11 @@ def check_overrides(args: Sequence[str]) -> None:
             continue
         if key == "env":
             value = o.value()
-            if not isinstance(value, str) or value not in env_choices():
-                raise UsageError(f"unknown env {value!r}: env= takes one task; choices: "
+            if not isinstance(value, str):  # a list, or a sweep
+                raise UsageError(f"{o.input_line}: env= takes one task of: "
+                                 f"{', '.join(env_choices())}")
+            if value not in env_choices():
+                raise UsageError(f"unknown env {value!r}; choices: "
                                  f"{', '.join(env_choices())}")
             continue
         if key == "env.name":
@@ -153,9 +162,12 @@ def check_overrides(args: Sequence[str]) -> None:
                              f"(choices: {', '.join(env_choices())})")
         if key == "algo":
             value = o.value()
-            if not isinstance(value, str) or value not in algo_choices():
-                raise UsageError(f"unknown algo {value!r}: algo= takes one algorithm; "
-                                 f"choices: {', '.join(algo_choices())}")
+            if not isinstance(value, str):  # a list, or a sweep
+                raise UsageError(f"{o.input_line}: algo= takes one algorithm of: "
+                                 f"{', '.join(algo_choices())}")
+            if value not in algo_choices():
+                raise UsageError(f"unknown algo {value!r}; choices: "
+                                 f"{', '.join(algo_choices())}")
             continue
         if key.startswith("algo."):
             raise UsageError("set the algorithm with algo=<name>, not algo.name "
@@ -163,7 +175,7 @@ def check_overrides(args: Sequence[str]) -> None:
         if key == "pgps":
             value = o.value()
             unknown = (sorted(set(value) - set(PGPS_FIELDS)) if isinstance(value, dict)
-                       else None)
+                       else [] if value == "table3" else None)  # table3: the defaults' group
             if unknown != []:
                 raise UsageError(f"pgps={o.input_line.split('=', 1)[1]} is not a setting: set "
                                  f"PGPSConfig's fields as pgps.<field>=value, one of: "
@@ -186,8 +198,12 @@ def check_overrides(args: Sequence[str]) -> None:
         raise UsageError(f"unknown setting {key!r}; {_valid_settings_text()}")
     algo = next((o.value() for o in overrides if o.key_or_group == "algo"), "pgps")
     for o in overrides:
-        if algo != "pgps" and o.key_or_group in {f"pgps.{s}" for s in SWITCHES}:
-            raise UsageError(f"{o.key_or_group} is one of PGPS's couplings "
+        value = o.value() if o.key_or_group == "pgps" else None
+        fields = ([f"pgps.{f}" for f in value] if isinstance(value, dict)
+                  else [o.key_or_group])
+        coupling = next((f for f in fields if f in {f"pgps.{s}" for s in SWITCHES}), None)
+        if algo != "pgps" and coupling:
+            raise UsageError(f"{coupling} is one of PGPS's couplings "
                              f"({', '.join(SWITCHES)}); algo={algo} has none of them, they "
                              f"apply to algo=pgps")
 

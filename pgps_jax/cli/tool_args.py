@@ -17,7 +17,7 @@ def parse_args(argv: Sequence[str], types: Mapping[str, Callable], usage: str,
     """`key=value` arguments -> {key: types[key](value)}; UsageError naming a bad one.
     `-h` or `--help` prints `usage` (the command's docstring) and exits."""
     if "-h" in argv or "--help" in argv:
-        print(usage.strip())
+        print((usage or "").strip())  # no docstrings under python -OO
         sys.exit(EXIT_OK)
     values = {}
     for arg in argv:
@@ -49,6 +49,8 @@ def require_writable(out: str) -> pathlib.Path:
     """`out` as an absolute path, once a file can be written beside it (before any work
     whose result it would hold); UsageError naming the cause otherwise."""
     path = pathlib.Path(out).absolute()
+    if not out or path.is_dir():
+        raise UsageError(f"out={out}: name a file to write, not a folder")
     try:
         with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}."):
             pass
