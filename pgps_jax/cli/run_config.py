@@ -132,6 +132,16 @@ _HYDRA_FLAGS_WITH_VALUES = ("--cfg", "-c", "--package", "-p", "--config-name", "
 """Hydra's flags that take a value: the word after one is not a setting."""
 
 
+def _require_one_of(override, what: str, choices: Sequence[str]) -> None:
+    """UsageError unless the override (env=, algo=) names one of `choices`."""
+    key, value = override.key_or_group, override.value()
+    if not isinstance(value, str):  # a list, or a sweep
+        raise UsageError(f"{override.input_line}: {key}= takes one {what} of: "
+                         f"{', '.join(choices)}")
+    if value not in choices:
+        raise UsageError(f"unknown {key} {value!r}; choices: {', '.join(choices)}")
+
+
 def check_overrides(args: Sequence[str]) -> None:
     """Checks command-line overrides before Hydra composes them: unknown keys, tasks and
     algorithms, words that are not key=value, and PGPS's couplings set for a baseline.
@@ -149,25 +159,13 @@ def check_overrides(args: Sequence[str]) -> None:
         if key.startswith("hydra") or key in _RUN_KEYS:
             continue
         if key == "env":
-            value = o.value()
-            if not isinstance(value, str):  # a list, or a sweep
-                raise UsageError(f"{o.input_line}: env= takes one task of: "
-                                 f"{', '.join(env_choices())}")
-            if value not in env_choices():
-                raise UsageError(f"unknown env {value!r}; choices: "
-                                 f"{', '.join(env_choices())}")
+            _require_one_of(o, "task", env_choices())
             continue
         if key == "env.name":
             raise UsageError("set the task with env=<task>, not env.name "
                              f"(choices: {', '.join(env_choices())})")
         if key == "algo":
-            value = o.value()
-            if not isinstance(value, str):  # a list, or a sweep
-                raise UsageError(f"{o.input_line}: algo= takes one algorithm of: "
-                                 f"{', '.join(algo_choices())}")
-            if value not in algo_choices():
-                raise UsageError(f"unknown algo {value!r}; choices: "
-                                 f"{', '.join(algo_choices())}")
+            _require_one_of(o, "algorithm", algo_choices())
             continue
         if key.startswith("algo."):
             raise UsageError("set the algorithm with algo=<name>, not algo.name "
