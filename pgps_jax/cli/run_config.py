@@ -153,8 +153,8 @@ def check_overrides(args: Sequence[str]) -> None:
                 and not (i and args[i - 1] in _HYDRA_FLAGS_WITH_VALUES)):
             raise UsageError(f"{arg!r} is not a setting: write key=value; "
                              f"{_valid_settings_text()}")
-    overrides = parse_overrides(args)
-    for o in overrides:
+    algo, pgps_fields = "pgps", []  # for the couplings' check, after the loop
+    for o in parse_overrides(args):
         key = o.key_or_group
         if key.startswith("hydra") or key in _RUN_KEYS:
             continue
@@ -166,6 +166,7 @@ def check_overrides(args: Sequence[str]) -> None:
                              f"(choices: {', '.join(env_choices())})")
         if key == "algo":
             _require_one_of(o, "algorithm", algo_choices())
+            algo = o.value()
             continue
         if key.startswith("algo."):
             raise UsageError("set the algorithm with algo=<name>, not algo.name "
@@ -178,6 +179,7 @@ def check_overrides(args: Sequence[str]) -> None:
                 raise UsageError(f"pgps={o.input_line.split('=', 1)[1]} is not a setting: set "
                                  f"PGPSConfig's fields as pgps.<field>=value, one of: "
                                  f"{', '.join(PGPS_FIELDS)}")
+            pgps_fields += list(value) if isinstance(value, dict) else []
             continue
         if key.startswith("physics."):
             if key[len("physics."):] not in physics_fields():
@@ -192,18 +194,14 @@ def check_overrides(args: Sequence[str]) -> None:
             if field not in PGPS_FIELDS:
                 raise UsageError(f"unknown setting {key!r}: PGPSConfig has no field {field!r}; "
                                  f"pgps.<field> must be one of: {', '.join(PGPS_FIELDS)}")
+            pgps_fields.append(field)
             continue
         raise UsageError(f"unknown setting {key!r}; {_valid_settings_text()}")
-    algo = next((o.value() for o in overrides if o.key_or_group == "algo"), "pgps")
-    for o in overrides:
-        value = o.value() if o.key_or_group == "pgps" else None
-        fields = ([f"pgps.{f}" for f in value] if isinstance(value, dict)
-                  else [o.key_or_group])
-        coupling = next((f for f in fields if f in {f"pgps.{s}" for s in SWITCHES}), None)
-        if algo != "pgps" and coupling:
-            raise UsageError(f"{coupling} is one of PGPS's couplings "
-                             f"({', '.join(SWITCHES)}); algo={algo} has none of them, they "
-                             f"apply to algo=pgps")
+    couplings = [f for f in pgps_fields if f in SWITCHES]
+    if algo != "pgps" and couplings:
+        raise UsageError(f"pgps.{couplings[0]} is one of PGPS's couplings "
+                         f"({', '.join(SWITCHES)}); algo={algo} has none of them, they "
+                         f"apply to algo=pgps")
 
 
 def coerce(key: str, value: Any, kind: Any) -> Any:

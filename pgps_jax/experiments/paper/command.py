@@ -36,7 +36,7 @@ from pgps_jax.cli.errors import EXIT_INTERRUPTED, UsageError, print_error, repor
 from pgps_jax.envs import make_env
 from pgps_jax.experiments.paper import side_by_side
 from pgps_jax.experiments.paper.grid import EXPERIMENTS, Cell, cells
-from pgps_jax.experiments.paper.report import REFERENCE, write_report
+from pgps_jax.experiments.paper.report import REFERENCE, sample_std, write_report
 from pgps_jax.experiments.paper.runner import (RESULT, Budget, Seeds, done_seeds, parts,
                                                run_cell)
 
@@ -102,11 +102,8 @@ def run(experiment: str, out: pathlib.Path, budget: Budget, tasks=(), configs=()
 
 def cell_summary(experiment: str, result: dict) -> str:
     """One line of a done cell: its seeds' final returns, mean ± sample std per actor."""
-    def mean_std(returns) -> str:
-        spread = np.std(returns, ddof=1) if len(returns) > 1 else 0.0
-        return f"{np.mean(returns):,.1f} ± {spread:,.1f}"
-    finals = "; ".join(f"{actor} {mean_std(returns)}"
-                       for actor, returns in result["final"].items())
+    finals = "; ".join(f"{actor} {np.mean(r):,.1f} ± {sample_std(r):,.1f}"
+                       for actor, r in ((a, np.asarray(v)) for a, v in result["final"].items()))
     return (f"{experiment} {result['task']} {result['config']}: seeds "
             f"{', '.join(map(str, result['seeds']))} done at {min(result['env_steps']):,} env "
             f"steps or more; final {finals}")
