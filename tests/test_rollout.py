@@ -196,3 +196,29 @@ def test_a_step_whose_metrics_differ_from_reset_s_is_named():
     with pytest.raises(ValueError, match=r"metrics keys \['speed', 'unstable'\] but reset "
                                          r"gives \['unstable'\].*new in step: \['speed'\]"):
         run(ChangesMetrics(), [5])
+
+
+class PoisonedReset(Countdown):
+    """Countdown whose reset yields a NaN observation for about half of its keys."""
+
+    def reset(self, rng):
+        state = super().reset(rng)
+        poisoned = jax.random.bernoulli(rng)
+        return state.replace(obs=state.obs.at[1].set(jnp.where(poisoned, jnp.nan, 0.0)))
+
+
+def test_a_non_finite_observation_from_reset_never_reaches_the_buffer():
+    transitions, valid = random_warmup(PoisonedReset(), jax.random.PRNGKey(0), num_envs=8,
+                                       steps_per_env=6, max_episode_steps=5)
+    poisoned = ~np.isfinite(np.asarray(transitions.obs)).all(-1)
+    assert poisoned.any() and (~poisoned).any()      # the reset poisons some episodes only
+    np.testing.assert_array_equal(np.asarray(valid), ~poisoned)
+    restarted = np.asarray(transitions.obs[1:, :, 0])[poisoned[:-1]]
+    np.testing.assert_array_equal(restarted, 0)      # a poisoned start is reset at once
+    episodes = run(PoisonedReset(), [4] * 8)
+    starts = np.asarray(episodes.transitions.obs[0])
+    poisoned = ~np.isfinite(starts).all(-1)
+    assert poisoned.any() and (~poisoned).any()
+    np.testing.assert_array_equal(np.asarray(episodes.unstable), poisoned)
+    np.testing.assert_array_equal(np.asarray(episodes.returns), np.where(poisoned, 0.0, 4.0))
+    assert not np.asarray(episodes.valid)[:, poisoned].any()
