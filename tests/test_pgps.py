@@ -352,6 +352,27 @@ def test_evaluate_takes_a_state_or_actors_and_any_kind_of_key():
         agent.evaluate(agent.evaluated_actors(state))
 
 
+def test_evaluate_plays_any_number_of_actors_under_their_names():
+    agent = PGPS(SMALL, ENV, TESTS)
+    state = jax.jit(agent.init)(jax.random.PRNGKey(3), jax.random.PRNGKey(103))
+    three = agent.evaluated_actors(state)
+    by_state = agent.evaluate(state)
+    key = state.evaluation.key
+    one = agent.evaluate(three[:1], key)
+    assert set(one) == {"eval/actor0_returns", "eval/actor0_mean", "eval/actor0_std"}
+    np.testing.assert_allclose(one["eval/actor0_returns"], by_state["eval/mu_returns"],
+                               rtol=1e-6)
+    four = agent.evaluate(jnp.concatenate([three, three[2:]]), key)
+    np.testing.assert_allclose(four["eval/actor3_returns"], by_state["eval/elite_returns"],
+                               rtol=1e-6)
+    named = agent.evaluate(three[1:], key, names=("td3", "elite"))
+    np.testing.assert_allclose(named["eval/td3_mean"], by_state["eval/td3_mean"], rtol=1e-6)
+    with pytest.raises(ValueError, match=r"1 names \('td3',\) for 2 actors"):
+        agent.evaluate(three[1:], key, names=("td3",))
+    with pytest.raises(ValueError, match=r"\[A, P\], got shape"):
+        agent.evaluate(three[0], key)
+
+
 def test_generation_step_has_no_host_round_trips():
     """One device program per generation: no host callbacks, infeed/outfeed or send/recv."""
     agent, init, step = programs(SMALL)

@@ -231,13 +231,16 @@ class Agent:
                 f"{self.env.action_size}, hidden layers {list(self.config.actor_hidden)}")
 
     # --- evaluation -------------------------------------------------------------------
-    def evaluate(self, actors: "TrainState | jax.Array", key: jax.Array | None = None) -> dict:
+    def evaluate(self, actors: "TrainState | jax.Array", key: jax.Array | None = None,
+                 names: tuple[str, ...] | None = None) -> dict:
         """Deterministic test episodes (Section 5.1), now: of a state's `evaluated` actors, or
-        of `actors` [A, P] in that order.
+        of any `actors` [A, P].
 
         Each plays `evaluation_config.episodes` episodes of `.steps` steps, all in one batch,
         from the start states of `key` — by default a state's evaluation key, giving the
-        episodes of the evaluations that ride along in training.
+        episodes of the evaluations that ride along in training. The metrics name the actors
+        by `names`; by default those of `evaluated` where there are as many actors (a state's
+        or an evaluation's snapshot), else `actor0`, `actor1`, ….
         """
         if isinstance(actors, TrainState):
             self.check_state(actors)
@@ -245,9 +248,17 @@ class Agent:
             actors = self.evaluated_actors(actors)
         elif key is None:
             raise ValueError("evaluating an array of actors needs the key of the start states")
+        elif jnp.ndim(actors) != 2:
+            raise ValueError(f"the actors must be an array [A, P], got shape {jnp.shape(actors)}")
         elif jnp.shape(actors)[-1] != self.num_params:
             raise ValueError(f"the actors have {jnp.shape(actors)[-1]} parameters but this "
                              f"agent's actor has {self.num_params} ({self._sizes()})")
+        num_actors = jnp.shape(actors)[0]
+        if names is None:
+            names = (self.evaluated if num_actors == len(self.evaluated)
+                     else tuple(f"actor{i}" for i in range(num_actors)))
+        elif len(names) != num_actors:
+            raise ValueError(f"{len(names)} names {tuple(names)} for {num_actors} actors")
         returns = evaluation.evaluate(self.evaluation_config, self.env, self.policy, actors,
                                       key)
-        return evaluation.metrics(returns, self.evaluated)
+        return evaluation.metrics(returns, tuple(names))
