@@ -417,3 +417,23 @@ def test_a_state_of_another_env_is_refused_with_the_sizes_that_differ():
     with pytest.raises(ValueError, match="parameters but this agent's actor has"):
         jax.eval_shape(wider.evaluate, jax.eval_shape(agent.evaluated_actors, state),
                        jax.random.PRNGKey(0))
+
+
+@pytest.mark.parametrize("change, field", [
+    (dict(critic_hidden=(8, 16)), "td3"), (dict(pop_size=5), "kept_population"),
+    (dict(buffer_size=3000), "buffer"), (dict(episodes=2), "evaluation")])
+def test_a_state_of_other_sizes_is_refused_naming_the_field(change, field):
+    """Any leaf of another shape: other networks, population, buffer or evaluation."""
+    config = dataclasses.replace(SMALL, **{k: v for k, v in change.items() if k != "episodes"})
+    tests = dataclasses.replace(TESTS, **{k: v for k, v in change.items() if k == "episodes"})
+    other = jax.eval_shape(PGPS(config, ENV, tests).init, jax.random.PRNGKey(0))
+    agent = PGPS(SMALL, ENV, TESTS)
+    with pytest.raises(ValueError, match=rf"other sizes .*\.{field}\b.*\(this agent: "):
+        jax.eval_shape(agent.generation_step, other)
+    batch = jax.eval_shape(jax.vmap(PGPS(config, ENV, tests).init), jax.random.split(
+        jax.random.PRNGKey(0), 3))
+    with pytest.raises(ValueError, match=rf"\.{field}\b"):
+        jax.eval_shape(agent.evaluate, batch)
+    agent.check_state(jax.eval_shape(jax.vmap(agent.init), jax.random.split(
+        jax.random.PRNGKey(0), 3)))                     # a batch of its own states passes
+    agent.check_state(jax.eval_shape(agent.init, jax.random.key(0)))   # typed keys too

@@ -10,6 +10,7 @@ that one run loop, one checkpoint format and one experiment runner serve every a
 """
 
 import dataclasses
+import functools
 from typing import Callable, ClassVar
 
 import chex
@@ -225,6 +226,15 @@ class Agent:
         if differ:
             raise ValueError("the TrainState was made for another env or network: "
                              + ", ".join(differ))
+        differ = _shapes_differing(state, self._state_shapes)
+        if differ:
+            raise ValueError("the TrainState was made by an agent of other sizes (population, "
+                             "networks, buffer or evaluation): " + "; ".join(differ))
+
+    @functools.cached_property
+    def _state_shapes(self) -> TrainState:
+        """The shapes of the states this agent makes (`init`'s, traced once)."""
+        return jax.eval_shape(self.init, jax.random.PRNGKey(0))
 
     def _sizes(self) -> str:
         return (f"observation_size {self.env.observation_size}, action_size "
@@ -262,3 +272,27 @@ class Agent:
         returns = evaluation.evaluate(self.evaluation_config, self.env, self.policy, actors,
                                       key)
         return evaluation.metrics(returns, tuple(names))
+
+
+def _shapes_differing(state: TrainState, expected: TrainState, most: int = 4) -> list[str]:
+    """Where `state` (or a batch of states, leading dims those of its `generation`) differs
+    in structure or leaf shape from `expected`, one line per leaf, `most` at the most. PRNG
+    keys are left out: a state holds raw or typed keys alike."""
+    found, found_def = jax.tree_util.tree_flatten_with_path(state)
+    wanted, wanted_def = jax.tree_util.tree_flatten_with_path(expected)
+    if found_def != wanted_def:
+        def paths(leaves):
+            return {jax.tree_util.keystr(path) for path, _ in leaves}
+        odd = sorted(paths(found) ^ paths(wanted))
+        return [f"fields that are not this agent's or missing: {', '.join(odd[:most])}"
+                if odd else "its structure is not this agent's"]
+    batch = tuple(jnp.shape(state.generation))
+    differ = [f"{jax.tree_util.keystr(path)} {tuple(jnp.shape(x))[len(batch):]} (this agent: "
+              f"{want.shape})"
+              for (path, x), (_, want) in zip(found, wanted)
+              if not _is_key(want) and tuple(jnp.shape(x)) != batch + want.shape]
+    return differ[:most] + ([f"and {len(differ) - most} more"] if len(differ) > most else [])
+
+
+def _is_key(leaf: jax.ShapeDtypeStruct) -> bool:
+    return leaf.dtype == jnp.uint32 or jax.dtypes.issubdtype(leaf.dtype, jax.dtypes.prng_key)
