@@ -222,3 +222,34 @@ def test_a_non_finite_observation_from_reset_never_reaches_the_buffer():
     np.testing.assert_array_equal(np.asarray(episodes.unstable), poisoned)
     np.testing.assert_array_equal(np.asarray(episodes.returns), np.where(poisoned, 0.0, 4.0))
     assert not np.asarray(episodes.valid)[:, poisoned].any()
+
+
+class Misshapen(Countdown):
+    """Countdown whose reset breaks the contract's shapes in one field."""
+
+    def __init__(self, field, shape):
+        super().__init__()
+        self.field, self.shape = field, shape
+
+    def reset(self, rng):
+        state = super().reset(rng)
+        return state.replace(**{self.field: jnp.zeros(self.shape)})
+
+
+@pytest.mark.parametrize("field, shape", [("obs", (1, 2)), ("obs", (3,)), ("reward", (1,)),
+                                          ("done", (1,))])
+def test_a_reset_of_the_wrong_shapes_is_named(field, shape):
+    env = Misshapen(field, shape)
+    with pytest.raises(ValueError, match=rf"reset gives {field} of shape \({shape[0]},"):
+        random_warmup(env, jax.random.PRNGKey(0), num_envs=2, steps_per_env=3,
+                      max_episode_steps=3)
+    with pytest.raises(ValueError, match=rf"reset gives {field} of shape"):
+        run(env, [2, 2])
+
+
+def test_an_observation_size_that_the_env_does_not_give_is_named():
+    class Declared(Countdown):
+        observation_size = property(lambda self: 4)
+    with pytest.raises(ValueError, match=r"obs of shape \(2,\) .* needs \(4,\) "
+                                         r"\(observation_size 4"):
+        run(Declared(), [2])

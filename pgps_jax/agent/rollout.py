@@ -69,6 +69,20 @@ def _discount(state: State) -> jax.Array:
     return 1.0 - done
 
 
+def check_reset(env: Env, state: State) -> None:
+    """Raises ValueError naming the field if a batch [B] of `reset` states breaks the Env
+    contract's shapes: `obs` [observation_size], `reward` and `done` scalars per episode."""
+    batch = jnp.shape(state.reward)[:1]
+    wanted = {"obs": batch + (env.observation_size,), "reward": batch, "done": batch}
+    for field, shape in wanted.items():
+        found = jnp.shape(getattr(state, field))
+        if found != shape:
+            raise ValueError(
+                f"the env's reset gives {field} of shape {found[1:]} per episode, but the env "
+                f"contract needs {shape[1:]} (observation_size {env.observation_size}: a flat "
+                "observation vector, a scalar reward and done)")
+
+
 def check_step_keeps_the_state(before: State, after: State) -> None:
     """Raises ValueError naming what differs if an env's `step` returns a state whose
     structure differs from the one it was given (the Env contract: `reset` and `step` give
@@ -93,7 +107,9 @@ def check_step_keeps_the_state(before: State, after: State) -> None:
 def begin_episodes(env: Env, reset_keys: jax.Array, step_limits: jax.Array) -> EpisodeState:
     """Fresh episodes from `reset_keys` [B]; step_limits [B] caps each (0: the slot stays idle)."""
     batch = reset_keys.shape[0]
-    return EpisodeState(env=jax.vmap(env.reset)(reset_keys),
+    started = jax.vmap(env.reset)(reset_keys)
+    check_reset(env, started)
+    return EpisodeState(env=started,
                         limits=jnp.asarray(step_limits, jnp.int32),
                         alive=jnp.asarray(step_limits, jnp.int32) > 0,
                         returns=jnp.zeros((batch,)), discounted=jnp.zeros((batch,)),
@@ -188,6 +204,7 @@ def random_warmup(env: Env, key: jax.Array, num_envs: int, steps_per_env: int,
     """
     reset_key, action_key, restart_key = jax.random.split(key, 3)
     state = jax.vmap(env.reset)(jax.random.split(reset_key, num_envs))
+    check_reset(env, state)
 
     def step(carry, t):
         state, elapsed = carry
