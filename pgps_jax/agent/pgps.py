@@ -78,8 +78,8 @@ class PGPS(Agent):
     The env is any Brax `Env` (`brax.envs.base.Env`) that keeps this contract:
     - unbatched: `reset(key)` and `step(state, action)` act on one episode (PGPS vmaps them);
     - `obs` is a flat vector of `observation_size`, `reward` and `done` scalars (a reset of
-      other shapes raises ValueError naming the field); actions lie in [-1,
-      1]^`action_size`, which the env's step must take as they are;
+      other shapes raises ValueError naming the field);
+    - `step` takes actions in [-1, 1]^`action_size` as they are;
     - `reset` and `step` give states of the same structure: the same `metrics` and `info`
       keys, arrays of the same shapes and dtypes (a mismatch raises ValueError naming them);
     - `done` (any numeric dtype) ends an episode, as terminal unless `info["truncation"]` is
