@@ -2,7 +2,8 @@
 `TrainState`; `for_task` gives the paper's configuration of a task and `make_env` the task.
 The baselines built from the same parts share that interface: `make_agent(algo, config, env)`
 with `for_task(task, algo)` (`CEMAlone`, `TD3Alone`, `CEMRL`). `couplings_of` switches PGPS's
-couplings per state, to vmap Table 1's models in one program.
+couplings per state, to vmap Table 1's models in one program. `Checkpoints` saves and
+restores a `TrainState` with orbax.
 
     from pgps_jax import PGPS, for_task, make_env
 
@@ -25,6 +26,7 @@ _PUBLIC = {
     "EvaluationConfig": "pgps_jax.agent.config",
     "couplings_of": "pgps_jax.agent.couplings",
     "make_env": "pgps_jax.envs",
+    "Checkpoints": "pgps_jax.cli.checkpoint",
 }
 __all__ = list(_PUBLIC)
 

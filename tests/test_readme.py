@@ -19,7 +19,7 @@ def _snippets() -> str:
     return "\n".join(re.findall(r"```python\n(.*?)```", section, re.S))
 
 
-def test_the_readme_snippet_runs(monkeypatch, capsys):
+def test_the_readme_snippet_runs(monkeypatch, capsys, tmp_path):
     tiny = pgps_jax.agent.config.PGPSConfig(
         pop_size=2, top_k=1, actor_hidden=(8,), critic_hidden=(8,), buffer_size=400,
         warmup_steps=40, t_init=10, t_max=20, t_interval=100, batch_size=8, ss1_size=4,
@@ -31,13 +31,16 @@ def test_the_readme_snippet_runs(monkeypatch, capsys):
     monkeypatch.setattr(pgps_jax.agent.config, "EvaluationConfig",
                         lambda **settings: asked.append(settings) or tiny_tests)
     monkeypatch.setattr(pgps_jax.envs, "make_env", lambda task: asked.append(task) or PointMass())
+    monkeypatch.chdir(tmp_path)
     namespace = {}
     exec(compile(_snippets(), str(README), "exec"), namespace)
     assert asked == [dict(every=10_000, episodes=10, steps=1000), "hopper", "hopper",
                      "hopper", "hopper"]
     printed = capsys.readouterr().out.split("\n")
     assert len(printed) >= 3  # evaluations that ended, then the final one
-    assert int(namespace["state"].generation) == 10
+    assert int(namespace["state"].generation) == 10 == namespace["generation"]
+    assert namespace["meta"]["note"] == "any JSON"
+    assert (tmp_path / "runs/mine/checkpoints/10").is_dir()
     assert namespace["states"].generation.shape == (5,)
     assert namespace["metrics"]["td3/critic_loss"].shape == (5,)
     pair = namespace["pair"]  # Base and PGPS, one state each
