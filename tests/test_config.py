@@ -1,8 +1,12 @@
 """PGPSConfig: Table 3/4 presets and eager validation with actionable messages."""
 
+import dataclasses
+import json
+
+import numpy as np
 import pytest
 
-from pgps_jax.agent.config import TASK_NAMES, PGPSConfig, for_task
+from pgps_jax.agent.config import TASK_NAMES, EvaluationConfig, PGPSConfig, for_task
 
 
 def test_defaults_are_table_3():
@@ -62,6 +66,38 @@ def test_invalid_values_name_field_value_and_range(changes, field, hint):
     assert f"PGPSConfig.{field}=" in message
     assert repr(changes[field]) in message
     assert hint in message
+
+
+@pytest.mark.parametrize("changes, field, valid", [
+    (dict(q_filter="false"), "q_filter", "True or False"),
+    (dict(elitism=0), "elitism", "True or False"),
+    (dict(batch_size=True), "batch_size", "an integer"),
+    (dict(pop_size=2.5), "pop_size", "an integer"),
+    (dict(pop_size="4"), "pop_size", "an integer"),
+    (dict(actor_lr="1e-3"), "actor_lr", "a finite number"),
+    (dict(sigma_init=float("inf")), "sigma_init", "a finite number"),
+    (dict(d_target=float("nan")), "d_target", "a finite number"),
+    (dict(actor_hidden=(16.5,)), "actor_hidden", "a tuple of integer layer widths"),
+    (dict(critic_hidden=16), "critic_hidden", "a tuple of integer layer widths"),
+    (dict(fell_behind_rule=1), "fell_behind_rule", "a string"),
+])
+def test_a_value_of_the_wrong_type_is_named_before_any_range(changes, field, valid):
+    with pytest.raises(ValueError, match=rf"^PGPSConfig\.{field}=.* must be {valid}$"):
+        for_task("hopper", **changes)
+
+
+def test_numpy_scalars_and_lists_are_stored_as_python_values():
+    config = for_task("hopper", batch_size=np.int64(16), actor_hidden=[16, np.int32(8)],
+                      q_filter=np.bool_(False), actor_lr=np.float32(0.5))
+    assert (type(config.batch_size), type(config.q_filter), type(config.actor_lr)) == (
+        int, bool, float)
+    assert config.actor_hidden == (16, 8) and config.actor_lr == 0.5
+    assert json.loads(json.dumps(dataclasses.asdict(config)))["batch_size"] == 16
+    assert hash(config) == hash(for_task("hopper", batch_size=16, actor_hidden=(16, 8),
+                                         q_filter=False, actor_lr=0.5))
+    assert type(EvaluationConfig(every=np.int64(100)).every) is int
+    with pytest.raises(ValueError, match=r"EvaluationConfig\.every=True .* an integer"):
+        EvaluationConfig(every=True)
 
 
 def test_too_few_candidates_for_half_population():

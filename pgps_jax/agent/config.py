@@ -6,7 +6,11 @@ algorithm's functions are built and never lives inside the TrainState.
 """
 
 import dataclasses
+import math
+import numbers
 from typing import Tuple
+
+import numpy as np
 
 TASK_NAMES = ("swimmer", "halfcheetah", "hopper", "walker2d", "ant")
 FELL_BEHIND_RULES = ("mean_minus_std", "mean")
@@ -147,6 +151,7 @@ class PGPSConfig:
     """Increasing evaluation steps (eq. 4); when off, T = T_max."""
 
     def __post_init__(self):
+        _check_types(self)
         _validate(self)
 
     @property
@@ -250,9 +255,10 @@ class EvaluationConfig:
     """Step limit of a test episode."""
 
     def __post_init__(self):
+        _check_types(self)
         for name in ("every", "episodes", "steps"):
             value = getattr(self, name)
-            if not isinstance(value, int) or value <= 0:
+            if value <= 0:
                 raise ValueError(f"EvaluationConfig.{name}={value!r} is invalid: must be a "
                                  "positive integer")
 
@@ -280,6 +286,39 @@ def saved_fields_as_run(saved: dict, added_at_default: Tuple[str, ...] = ()) -> 
     return effective_fields(fields)
 
 
+def _is_integer(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+
+
+def _check_types(config) -> None:
+    """Raise ValueError naming a field whose value is not of its annotated type (a bool for a
+    switch, an integer for a count, a finite number, a string, a tuple of integer widths);
+    numpy scalars are stored as Python ones and widths as a tuple."""
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if field.type is bool:
+            ok, valid = isinstance(value, (bool, np.bool_)), "True or False"
+            plain = bool(value) if ok else value
+        elif field.type is int:
+            ok, valid = _is_integer(value), "an integer"
+            plain = int(value) if ok else value
+        elif field.type is float:
+            ok = (isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+                  and math.isfinite(value))
+            valid = "a finite number"
+            plain = float(value) if isinstance(value, np.floating) else value
+        elif field.type is str:
+            ok, valid, plain = isinstance(value, str), "a string", value
+        else:  # Tuple[int, ...]: layer widths
+            ok = isinstance(value, (tuple, list)) and all(_is_integer(w) for w in value)
+            valid = "a tuple of integer layer widths"
+            plain = tuple(int(w) for w in value) if ok else value
+        if not ok:
+            raise ValueError(f"{type(config).__name__}.{field.name}={value!r} is invalid: "
+                             f"must be {valid}")
+        object.__setattr__(config, field.name, plain)
+
+
 def _require(ok: bool, field: str, value, valid: str) -> None:
     if not ok:
         raise ValueError(f"PGPSConfig.{field}={value!r} is invalid: must be {valid}")
@@ -294,10 +333,10 @@ def _validate(c: PGPSConfig) -> None:
                      "ss1_size", "ss2_size", "t_init", "t_max", "t_interval")
     for name in positive_ints:
         value = getattr(c, name)
-        _require(isinstance(value, int) and value > 0, name, value, "a positive integer")
+        _require(value > 0, name, value, "a positive integer")
     for name in ("warmup_steps", "q_filter_start", "t_increment"):
         value = getattr(c, name)
-        _require(isinstance(value, int) and value >= 0, name, value, "a non-negative integer")
+        _require(value >= 0, name, value, "a non-negative integer")
     positive_floats = ("sigma_init", "sigma_limit", "actor_lr", "critic_lr", "beta_init",
                        "beta_min", "beta_max", "d_target", "sample_ratio")
     for name in positive_floats:
@@ -328,5 +367,5 @@ def _validate(c: PGPSConfig) -> None:
              "transitions)")
     for name in ("actor_hidden", "critic_hidden"):
         widths = getattr(c, name)
-        _require(len(widths) > 0 and all(int(w) > 0 for w in widths), name, widths,
+        _require(len(widths) > 0 and all(w > 0 for w in widths), name, widths,
                  "a non-empty tuple of positive layer widths")
