@@ -437,3 +437,14 @@ def test_a_state_of_other_sizes_is_refused_naming_the_field(change, field):
     agent.check_state(jax.eval_shape(jax.vmap(agent.init), jax.random.split(
         jax.random.PRNGKey(0), 3)))                     # a batch of its own states passes
     agent.check_state(jax.eval_shape(agent.init, jax.random.key(0)))   # typed keys too
+
+
+def test_the_agent_takes_its_settings_by_the_same_names_and_checks_their_types():
+    from pgps_jax.agent.algorithms import make_agent
+    assert PGPS(SMALL, ENV, evaluation_config=TESTS).evaluation_config == TESTS
+    assert make_agent("pgps", SMALL, ENV, evaluation_config=TESTS).evaluation_config == TESTS
+    with pytest.raises(TypeError, match="PGPS's evaluation_config must be of type "
+                                        "EvaluationConfig, got dict"):
+        PGPS(SMALL, ENV, dict(episodes=2))
+    with pytest.raises(TypeError, match="TD3Alone's config must be of type PGPSConfig, got dict"):
+        make_agent("td3", {"pop_size": 2}, ENV)

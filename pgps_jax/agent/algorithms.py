@@ -2,7 +2,7 @@
 
 import functools
 
-from pgps_jax.agent.base import Agent
+from pgps_jax.agent.base import Agent, check_settings_types
 from pgps_jax.agent.baselines.cem import CEMAlone
 from pgps_jax.agent.baselines.cemrl import CEMRL
 from pgps_jax.agent.baselines.td3 import TD3Alone
@@ -14,16 +14,18 @@ AGENTS: dict[str, type[Agent]] = {cls.name: cls for cls in (PGPS, CEMAlone, TD3A
 
 
 def make_agent(algo: str, config: PGPSConfig, env: Env,
-               evaluation: EvaluationConfig = EvaluationConfig()) -> Agent:
+               evaluation_config: EvaluationConfig = EvaluationConfig()) -> Agent:
     """The agent of algorithm `algo` (one of `ALGORITHMS`); ValueError naming the valid ones.
     Give it `for_task(task, algo)` for the algorithm's published hyper-parameters. Equal
     arguments give the same agent, whose programs the training loop compiles once per
     process (`pgps_jax.cli.loop`)."""
     if algo not in AGENTS:
         raise ValueError(f"unknown algorithm {algo!r}; valid: {', '.join(ALGORITHMS)}")
-    return _built(algo, config, env, evaluation)
+    check_settings_types(AGENTS[algo].__name__, config, evaluation_config)
+    return _built(algo, config, env, evaluation_config)
 
 
 @functools.lru_cache(maxsize=32)
-def _built(algo: str, config: PGPSConfig, env: Env, evaluation: EvaluationConfig) -> Agent:
-    return AGENTS[algo](config, env, evaluation)
+def _built(algo: str, config: PGPSConfig, env: Env,
+           evaluation_config: EvaluationConfig) -> Agent:
+    return AGENTS[algo](config, env, evaluation_config)

@@ -92,6 +92,7 @@ class Agent:
     one the algorithm reports (`eval.csv`, the experiments' curves)."""
 
     def __post_init__(self):
+        check_settings_types(type(self).__name__, self.config, self.evaluation_config)
         check_for_algorithm(self.name, self.config)
         td3 = TD3(self.config, self.env.observation_size, self.env.action_size)
         num_params, unflatten = actor_flattener(td3.actor_net, self.env.observation_size)
@@ -272,6 +273,16 @@ class Agent:
         returns = evaluation.evaluate(self.evaluation_config, self.env, self.policy, actors,
                                       key)
         return evaluation.metrics(returns, tuple(names))
+
+
+def check_settings_types(agent: str, config, evaluation_config) -> None:
+    """Raises TypeError naming the argument of `agent` that is not a PGPSConfig or an
+    EvaluationConfig."""
+    for name, value, kind in (("config", config, PGPSConfig),
+                              ("evaluation_config", evaluation_config, EvaluationConfig)):
+        if not isinstance(value, kind):
+            raise TypeError(f"{agent}'s {name} must be of type {kind.__name__}, got "
+                            f"{type(value).__name__}")
 
 
 def _shapes_differing(state: TrainState, expected: TrainState, most: int = 4) -> list[str]:
