@@ -248,7 +248,9 @@ class EvaluationConfig:
     """When and how long the test episodes run (Section 5.1)."""
 
     every: int = 10_000
-    """Env steps between evaluations."""
+    """Env steps between evaluations: one falls due at each multiple. A generation that plays
+    more than `every` steps crosses several at once and begins one evaluation for them (its
+    actors are the same for all of them)."""
     episodes: int = 10
     """Test episodes per actor."""
     steps: int = 1000

@@ -10,7 +10,9 @@ its loop (so they add no sequential env steps), and `advanced` takes them back a
 rollout and reports the evaluation once all of its episodes have ended. So that no
 evaluation is skipped, one under way whose successor could fall due before the next rollout
 (`must_end_now`) drives the loop of this rollout to its end; an evaluation that falls due
-while another is still under way all the same begins when that one has ended.
+while another is still under way all the same begins when that one has ended. Multiples of
+`every` that one generation crosses together give one evaluation: the actors it would test
+are the same for each.
 """
 
 from typing import Callable
