@@ -86,7 +86,8 @@ def test_each_part_alone_computes_what_the_generation_computed_in_it(couplings, 
     guided = metrics["td3/guided_loss"]
     parts = {name: jax.jit(part)(*inputs(state, played, after, guided))
              for name, (part, inputs) in parts_of(agent).items()}
-    np.testing.assert_array_equal(parts["population_generation"], played.population)
+    # compiled alone, the sampling may round apart from the generation's (XLA fuses it otherwise)
+    np.testing.assert_allclose(parts["population_generation"], played.population, rtol=1e-6)
     jax.tree.map(np.testing.assert_array_equal, parts["cem_update"], after.cem)
     buffer, td3, beta, _ = parts["td3_update"]  # compiled alone: equal to float tolerance
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6),

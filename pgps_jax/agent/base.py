@@ -288,9 +288,10 @@ def check_settings_types(agent: str, config, evaluation_config) -> None:
 def _shapes_differing(state: TrainState, expected: TrainState, most: int = 4) -> list[str]:
     """Where `state` (or a batch of states, leading dims those of its `generation`) differs
     in structure or leaf shape from `expected`, one line per leaf, `most` at the most. PRNG
-    keys are left out: a state holds raw or typed keys alike."""
-    found, found_def = jax.tree_util.tree_flatten_with_path(state)
-    wanted, wanted_def = jax.tree_util.tree_flatten_with_path(expected)
+    keys are left out: a state holds raw or typed keys alike; so are its couplings, its own
+    or none (the configuration's)."""
+    found, found_def = jax.tree_util.tree_flatten_with_path(state.replace(couplings=None))
+    wanted, wanted_def = jax.tree_util.tree_flatten_with_path(expected.replace(couplings=None))
     if found_def != wanted_def:
         def paths(leaves):
             return {jax.tree_util.keystr(path) for path, _ in leaves}
