@@ -88,13 +88,14 @@ def test_a_value_of_the_wrong_type_is_named_before_any_range(changes, field, val
 
 def test_numpy_scalars_and_lists_are_stored_as_python_values():
     config = for_task("hopper", batch_size=np.int64(16), actor_hidden=[16, np.int32(8)],
-                      q_filter=np.bool_(False), actor_lr=np.float32(0.5))
-    assert (type(config.batch_size), type(config.q_filter), type(config.actor_lr)) == (
-        int, bool, float)
+                      q_filter=np.bool_(False), actor_lr=np.float32(0.5),
+                      critic_lr=np.int64(1))
+    assert (type(config.batch_size), type(config.q_filter), type(config.actor_lr),
+            type(config.critic_lr)) == (int, bool, float, float)
     assert config.actor_hidden == (16, 8) and config.actor_lr == 0.5
     assert json.loads(json.dumps(dataclasses.asdict(config)))["batch_size"] == 16
     assert hash(config) == hash(for_task("hopper", batch_size=16, actor_hidden=(16, 8),
-                                         q_filter=False, actor_lr=0.5))
+                                         q_filter=False, actor_lr=0.5, critic_lr=1.0))
     assert type(EvaluationConfig(every=np.int64(100)).every) is int
     with pytest.raises(ValueError, match=r"EvaluationConfig\.every=True .* an integer"):
         EvaluationConfig(every=True)

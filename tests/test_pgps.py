@@ -371,6 +371,13 @@ def test_evaluate_plays_any_number_of_actors_under_their_names():
         agent.evaluate(three[1:], key, names=("td3",))
     with pytest.raises(ValueError, match=r"\[A, P\], got shape"):
         agent.evaluate(three[0], key)
+    with pytest.raises(ValueError, match="distinct non-empty strings, got \\('a', 'a'\\)"):
+        agent.evaluate(three[1:], key, names=("a", "a"))
+    with pytest.raises(ValueError, match="distinct non-empty strings, got 'ab'"):
+        agent.evaluate(three[1:], key, names="ab")
+    states = jax.eval_shape(jax.vmap(agent.init), jax.random.split(jax.random.PRNGKey(0), 2))
+    with pytest.raises(ValueError, match="one TrainState, not a batch of them: vmap it"):
+        agent.evaluate(states)
 
 
 def test_generation_step_has_no_host_round_trips():
@@ -433,7 +440,7 @@ def test_a_state_of_other_sizes_is_refused_naming_the_field(change, field):
     batch = jax.eval_shape(jax.vmap(PGPS(config, ENV, tests).init), jax.random.split(
         jax.random.PRNGKey(0), 3))
     with pytest.raises(ValueError, match=rf"\.{field}\b"):
-        jax.eval_shape(agent.evaluate, batch)
+        agent.check_state(batch)
     agent.check_state(jax.eval_shape(jax.vmap(agent.init), jax.random.split(
         jax.random.PRNGKey(0), 3)))                     # a batch of its own states passes
     agent.check_state(jax.eval_shape(agent.init, jax.random.key(0)))   # typed keys too
@@ -448,3 +455,15 @@ def test_the_agent_takes_its_settings_by_the_same_names_and_checks_their_types()
         PGPS(SMALL, ENV, dict(episodes=2))
     with pytest.raises(TypeError, match="TD3Alone's config must be of type PGPSConfig, got dict"):
         make_agent("td3", {"pop_size": 2}, ENV)
+
+
+def test_a_state_of_another_algorithm_is_refused_naming_its_fields():
+    from pgps_jax.agent.algorithms import make_agent
+    td3 = make_agent("td3", SMALL.replace(q_filter=False, pg_guides_ea=False,
+                                          ea_guides_pg=False, increasing_steps=False), ENV,
+                     TESTS)
+    state = jax.eval_shape(td3.init, jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match=r"another algorithm or version: fields not this "
+                                         r"agent's \[.*\], this agent's fields missing "
+                                         r"\['\.beta'"):
+        jax.eval_shape(PGPS(SMALL, ENV, TESTS).generation_step, state)

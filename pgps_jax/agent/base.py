@@ -214,7 +214,8 @@ class Agent:
     # --- checks -----------------------------------------------------------------------
     def check_state(self, state: TrainState) -> None:
         """Raises ValueError, naming what differs, if `state` (or a batch of states) was made
-        by an agent of another env or network size."""
+        by an agent of another env, network, population, buffer or evaluation size, or by
+        another algorithm."""
         found = {"parameter count": state.evaluation.actors.shape[-1],
                  "observation_size": state.evaluation.episodes.env.obs.shape[-1]}
         wanted = {"parameter count": self.num_params,
@@ -227,6 +228,9 @@ class Agent:
         if differ:
             raise ValueError("the TrainState was made for another env or network: "
                              + ", ".join(differ))
+        fields = _fields_differing(state, self._state_shapes)
+        if fields:
+            raise ValueError(f"the TrainState was made by another algorithm or version: {fields}")
         differ = _shapes_differing(state, self._state_shapes)
         if differ:
             raise ValueError("the TrainState was made by an agent of other sizes (population, "
@@ -234,8 +238,10 @@ class Agent:
 
     @functools.cached_property
     def _state_shapes(self) -> TrainState:
-        """The shapes of the states this agent makes (`init`'s, traced once)."""
-        return jax.eval_shape(self.init, jax.random.PRNGKey(0))
+        """The shapes of the states this agent makes: `init`'s, traced once without the
+        warm-up's physics (its steps fix no shape)."""
+        unfilled = dataclasses.replace(self, config=self.config.replace(warmup_steps=0))
+        return jax.eval_shape(unfilled.init, jax.ShapeDtypeStruct((2,), jnp.uint32))
 
     def _sizes(self) -> str:
         return (f"observation_size {self.env.observation_size}, action_size "
@@ -254,6 +260,9 @@ class Agent:
         or an evaluation's snapshot), else `actor0`, `actor1`, ….
         """
         if isinstance(actors, TrainState):
+            if jnp.ndim(actors.generation):
+                raise ValueError("evaluate takes one TrainState, not a batch of them: vmap it "
+                                 "over the batch")
             self.check_state(actors)
             key = actors.evaluation.key if key is None else key
             actors = self.evaluated_actors(actors)
@@ -268,8 +277,13 @@ class Agent:
         if names is None:
             names = (self.evaluated if num_actors == len(self.evaluated)
                      else tuple(f"actor{i}" for i in range(num_actors)))
-        elif len(names) != num_actors:
-            raise ValueError(f"{len(names)} names {tuple(names)} for {num_actors} actors")
+        elif (not isinstance(names, (tuple, list)) or len(set(names)) != len(names)
+              or not all(isinstance(n, str) and n for n in names)):
+            raise ValueError(f"names must be a tuple of distinct non-empty strings, got "
+                             f"{names!r}")
+        if len(names) != num_actors or not num_actors:
+            raise ValueError(f"{len(names)} names {tuple(names)} for {num_actors} actors "
+                             "(at least one)")
         returns = evaluation.evaluate(self.evaluation_config, self.env, self.policy, actors,
                                       key)
         return evaluation.metrics(returns, tuple(names))
@@ -285,23 +299,29 @@ def check_settings_types(agent: str, config, evaluation_config) -> None:
                             f"{type(value).__name__}")
 
 
+def _fields_differing(state: TrainState, expected: TrainState, most: int = 4) -> str:
+    """The fields of `state` that `expected` lacks and those it lacks of `expected`, or "" if
+    they hold the same fields; their couplings left out (a state's own, or none: the
+    configuration's)."""
+    def paths(tree):
+        leaves = jax.tree_util.tree_leaves_with_path(tree.replace(couplings=None))
+        return {jax.tree_util.keystr(path) for path, _ in leaves}
+    extra, missing = sorted(paths(state) - paths(expected)), sorted(paths(expected) - paths(state))
+    if not extra and not missing:
+        return ""
+    return f"fields not this agent's {extra[:most]}, this agent's fields missing {missing[:most]}"
+
+
 def _shapes_differing(state: TrainState, expected: TrainState, most: int = 4) -> list[str]:
-    """Where `state` (or a batch of states, leading dims those of its `generation`) differs
-    in structure or leaf shape from `expected`, one line per leaf, `most` at the most. PRNG
-    keys are left out: a state holds raw or typed keys alike; so are its couplings, its own
-    or none (the configuration's)."""
-    found, found_def = jax.tree_util.tree_flatten_with_path(state.replace(couplings=None))
-    wanted, wanted_def = jax.tree_util.tree_flatten_with_path(expected.replace(couplings=None))
-    if found_def != wanted_def:
-        def paths(leaves):
-            return {jax.tree_util.keystr(path) for path, _ in leaves}
-        odd = sorted(paths(found) ^ paths(wanted))
-        return [f"fields that are not this agent's or missing: {', '.join(odd[:most])}"
-                if odd else "its structure is not this agent's"]
+    """Where `state` (or a batch of states, leading dims those of its `generation`), with the
+    fields of `expected`, differs from it in a leaf's shape, one line per leaf, `most` at the
+    most. PRNG keys are left out: a state holds raw or typed keys alike; so are its couplings."""
+    found = jax.tree.leaves(state.replace(couplings=None))
+    wanted = jax.tree_util.tree_leaves_with_path(expected.replace(couplings=None))
     batch = tuple(jnp.shape(state.generation))
     differ = [f"{jax.tree_util.keystr(path)} {tuple(jnp.shape(x))[len(batch):]} (this agent: "
               f"{want.shape})"
-              for (path, x), (_, want) in zip(found, wanted)
+              for x, (path, want) in zip(found, wanted)
               if not _is_key(want) and tuple(jnp.shape(x)) != batch + want.shape]
     return differ[:most] + ([f"and {len(differ) - most} more"] if len(differ) > most else [])
 

@@ -308,13 +308,16 @@ def _check_types(config) -> None:
             ok = (isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
                   and math.isfinite(value))
             valid = "a finite number"
-            plain = float(value) if isinstance(value, np.floating) else value
+            plain = value if type(value) in (int, float) or not ok else float(value)
         elif field.type is str:
             ok, valid, plain = isinstance(value, str), "a string", value
-        else:  # Tuple[int, ...]: layer widths
+        elif field.type == Tuple[int, ...]:  # layer widths
             ok = isinstance(value, (tuple, list)) and all(_is_integer(w) for w in value)
             valid = "a tuple of integer layer widths"
             plain = tuple(int(w) for w in value) if ok else value
+        else:
+            raise TypeError(f"{type(config).__name__}.{field.name}: no type check for "
+                            f"{field.type}")
         if not ok:
             raise ValueError(f"{type(config).__name__}.{field.name}={value!r} is invalid: "
                              f"must be {valid}")
