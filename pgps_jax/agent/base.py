@@ -277,8 +277,9 @@ class Agent:
         if names is None:
             names = (self.evaluated if num_actors == len(self.evaluated)
                      else tuple(f"actor{i}" for i in range(num_actors)))
-        elif (not isinstance(names, (tuple, list)) or len(set(names)) != len(names)
-              or not all(isinstance(n, str) and n for n in names)):
+        elif (not isinstance(names, (tuple, list))
+              or not all(isinstance(n, str) and n for n in names)
+              or len(set(names)) != len(names)):
             raise ValueError(f"names must be a tuple of distinct non-empty strings, got "
                              f"{names!r}")
         if len(names) != num_actors or not num_actors:
