@@ -236,12 +236,15 @@ class Agent:
             raise ValueError("the TrainState was made by an agent of other sizes (population, "
                              "networks, buffer or evaluation): " + "; ".join(differ))
 
+    def unfilled(self) -> "Agent":
+        """This agent without the random warm-up: its `init` gives the same shapes, without
+        tracing the warm-up's physics (for `jax.eval_shape`)."""
+        return dataclasses.replace(self, config=self.config.replace(warmup_steps=0))
+
     @functools.cached_property
     def _state_shapes(self) -> TrainState:
-        """The shapes of the states this agent makes: `init`'s, traced once without the
-        warm-up's physics (its steps fix no shape)."""
-        unfilled = dataclasses.replace(self, config=self.config.replace(warmup_steps=0))
-        return jax.eval_shape(unfilled.init, jax.ShapeDtypeStruct((2,), jnp.uint32))
+        """The shapes of the states this agent makes (`init`'s), traced once."""
+        return jax.eval_shape(self.unfilled().init, jax.ShapeDtypeStruct((2,), jnp.uint32))
 
     def _sizes(self) -> str:
         return (f"observation_size {self.env.observation_size}, action_size "

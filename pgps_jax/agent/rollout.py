@@ -12,8 +12,9 @@ Termination and truncation: a terminal (unhealthy) step stores discount 0; an ep
 its step limit stores discount 1 so the critic bootstraps through it, and so does a step that
 the env ends with `info["truncation"]` set (Brax's `EpisodeWrapper` time limit). A step whose
 physics went non-finite (`metrics["unstable"]`, or a non-finite observation or reward) ends
-the episode and is never marked valid, so it never reaches the replay buffer; so does a step
-from a non-finite observation (a reset can yield one), and the warm-up resets again after it.
+the episode and is never marked valid, so it never reaches the replay buffer. An episode whose
+reset gives a non-finite observation ends unstable before its first step; in the warm-up,
+the step from it is not stored and the env resets again.
 """
 
 from typing import Callable
@@ -50,13 +51,15 @@ class Episodes:
     valid: jax.Array          # [max_steps, B] bool, rows to store in the replay buffer
 
 
-def _is_sound(before: State, after: State) -> jax.Array:
-    """[B] bool: the step started from a finite observation (a reset can yield a non-finite
-    one), produced finite values, and the env did not flag instability."""
-    finite = jnp.all(jnp.isfinite(before.obs), axis=-1) & jnp.all(jnp.isfinite(after.obs),
-                                                                    axis=-1)
-    unstable = after.metrics.get("unstable", jnp.zeros_like(after.reward))
-    return finite & jnp.isfinite(after.reward) & (unstable == 0)
+def _finite(obs: jax.Array) -> jax.Array:
+    """[B] bool: every entry of each observation is finite."""
+    return jnp.all(jnp.isfinite(obs), axis=-1)
+
+
+def _is_sound(state: State) -> jax.Array:
+    """[B] bool: the step produced finite values and the env did not flag instability."""
+    unstable = state.metrics.get("unstable", jnp.zeros_like(state.reward))
+    return _finite(state.obs) & jnp.isfinite(state.reward) & (unstable == 0)
 
 
 def _discount(state: State) -> jax.Array:
@@ -109,11 +112,12 @@ def begin_episodes(env: Env, reset_keys: jax.Array, step_limits: jax.Array) -> E
     batch = reset_keys.shape[0]
     started = jax.vmap(env.reset)(reset_keys)
     check_reset(env, started)
+    playing, finite = jnp.asarray(step_limits, jnp.int32) > 0, _finite(started.obs)
     return EpisodeState(env=started,
                         limits=jnp.asarray(step_limits, jnp.int32),
-                        alive=jnp.asarray(step_limits, jnp.int32) > 0,
+                        alive=playing & finite,
                         returns=jnp.zeros((batch,)), discounted=jnp.zeros((batch,)),
-                        lengths=jnp.zeros((batch,), jnp.int32), unstable=jnp.zeros((batch,), bool))
+                        lengths=jnp.zeros((batch,), jnp.int32), unstable=playing & ~finite)
 
 
 def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeState,
@@ -155,7 +159,7 @@ def play(env: Env, policy: Policy, params: chex.ArrayTree, episodes: EpisodeStat
             action = jnp.clip(action + std[:, None] * perturbation, -1.0, 1.0)
         nxt = jax.vmap(env.step)(state, action)
         check_step_keeps_the_state(state, nxt)
-        sound = _is_sound(state, nxt)
+        sound = _is_sound(nxt)
         stored = alive & sound
         reward = jnp.where(stored, nxt.reward, 0.0)
         lengths = e.lengths + alive
@@ -212,7 +216,7 @@ def random_warmup(env: Env, key: jax.Array, num_envs: int, steps_per_env: int,
                                     (num_envs, env.action_size), minval=-1.0, maxval=1.0)
         nxt = jax.vmap(env.step)(state, action)
         check_step_keeps_the_state(state, nxt)
-        sound = _is_sound(state, nxt)
+        sound = _is_sound(nxt) & _finite(state.obs)   # a reset's observation too
         transition = Transition(obs=state.obs, action=action, reward=nxt.reward,
                                 next_obs=nxt.obs, discount=_discount(nxt))
         elapsed = elapsed + 1

@@ -32,8 +32,8 @@ from pgps_jax.envs import env_batches
 def state_shapes(agent: Agent, key: jax.Array, eval_key: jax.Array, seeds: bool = False):
     """The shapes and dtypes of `agent.init(key, eval_key)`'s TrainState (a checkpoint is
     restored into them), found without tracing the warm-up's physics."""
-    unfilled = dataclasses.replace(agent, config=agent.config.replace(warmup_steps=0))
-    return jax.eval_shape(jax.vmap(unfilled.init) if seeds else unfilled.init, key, eval_key)
+    init = agent.unfilled().init
+    return jax.eval_shape(jax.vmap(init) if seeds else init, key, eval_key)
 
 
 @dataclasses.dataclass(frozen=True)
