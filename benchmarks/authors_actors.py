@@ -141,7 +141,7 @@ def main():
                         help="the authors' learned_models directory")
     parser.add_argument("--tasks", nargs="+", choices=TASKS, default=list(TASKS))
     parser.add_argument("--episodes", type=int, default=10)
-    parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
+    parser.add_argument("--env", nargs="*", default=[], action="extend", metavar="NAME=VALUE",
                         help="make_env keyword arguments for every task")
     parser.add_argument("--engine", choices=("mjx", "c"), default="mjx",
                         help="step the physics with MJX (the envs' own) or MuJoCo's C engine")

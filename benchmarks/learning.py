@@ -75,9 +75,9 @@ def main():
     parser.add_argument("--task", required=True)
     parser.add_argument("--steps", type=int, default=1_000_000)
     parser.add_argument("--seeds", type=int, default=5)
-    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+    parser.add_argument("--set", nargs="*", default=[], action="extend", metavar="FIELD=VALUE",
                         help="PGPSConfig fields replacing the paper's")
-    parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
+    parser.add_argument("--env", nargs="*", default=[], action="extend", metavar="NAME=VALUE",
                         help="keyword arguments of make_env")
     parser.add_argument("--out", required=True)
     args = parser.parse_args()

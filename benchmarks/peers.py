@@ -235,7 +235,7 @@ def main(argv=None):
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("benchmarks/results/paper"))
     parser.add_argument("--no-normalize", action="store_true",
                         help="feed raw observations (PGPS and TD3 do not normalise)")
-    parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
+    parser.add_argument("--env", nargs="*", default=[], action="extend", metavar="NAME=VALUE",
                         help="keyword arguments of make_env (e.g. floor_contacts=gym)")
     args = parser.parse_args(argv)
     try:

@@ -6,6 +6,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import re
 import shutil
 import signal
 import subprocess
@@ -17,6 +18,7 @@ import pytest
 
 from benchmarks import lockstep
 from pgps_jax.agent.config import PGPSConfig, for_task
+from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.assignments import assignments, env_assignments, field_types
 from pgps_jax.cli.checkpoint import Checkpoints
 from pgps_jax.cli.errors import RunFailed, UsageError
@@ -24,7 +26,7 @@ from pgps_jax.envs import make_env
 from pgps_jax.experiments.paper import command, grid, report, runner, side_by_side
 
 from conftest import REDUCED_CELL, REDUCED_PGPS
-from train_cli import REPO, cli_env, read_csv, run_here
+from train_cli import REPO, cli_env, read_csv, run_here, wait_until
 
 TINY, BUDGET = REDUCED_PGPS, REDUCED_CELL
 HOPPER = grid.Cell("hopper", "pgps", {})
@@ -415,6 +417,44 @@ def test_a_signal_stops_a_cell_with_a_checkpoint_of_the_generation_it_stopped_at
                               lambda generation, steps: generations.append(generation))
     assert generations[0] == 4
     assert _timeless(resumed) == _timeless(result)
+
+
+def test_a_cell_running_in_another_process_is_refused_and_its_lock_goes_with_it(
+        uninterrupted, tmp_path):
+    """The lock of a running cell (here held by this process, as another would hold it)
+    refuses a second command given the same cell, naming the holder; a cell that ran leaves
+    no lock behind."""
+    out, _ = uninterrupted
+    assert not (out / "figure4" / "hopper" / "pgps" / runner.LOCK).exists()
+    directory = tmp_path / "cell"
+    directory.mkdir()
+    held = rundir.RunLock(directory / runner.LOCK)
+    try:
+        with pytest.raises(UsageError, match=f"{re.escape(str(directory))} is in use by "
+                                             f"process {os.getpid()} on .*; wait for it to "
+                                             "finish or stop it, or give another --out"):
+            runner.run_cell(HOPPER, directory, BUDGET)
+    finally:
+        held.release()
+    assert [p.name for p in directory.iterdir()] == [runner.LOCK]
+
+
+def test_sigterm_while_the_programs_compile_stops_the_command_as_ctrl_c_does(tmp_path, cache):
+    """Before the cell's loop (which checkpoints on a signal) SIGTERM is Ctrl-C: the command
+    says how to continue and leaves neither checkpoints nor its lock."""
+    command_line = [sys.executable, "-m", "pgps_jax.experiments.paper", "figure4", "--tasks",
+                    "hopper", "--configs", "pgps", "--seeds", "1", "--no-progress",
+                    "--out", str(tmp_path)]
+    process = subprocess.Popen(command_line, cwd=REPO, env=cli_env(cache), text=True,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    lock = tmp_path / "figure4" / "hopper" / "pgps" / runner.LOCK
+    wait_until(lock.exists, process, poll=0.01)
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130, stderr[-2000:]
+    assert "interrupted; the same command continues each cell" in stderr
+    assert "Traceback" not in stderr
+    assert list(lock.parent.iterdir()) == []
 
 
 def test_checkpoints_follow_the_clock_where_no_generations_are_given(uninterrupted, tmp_path):
@@ -823,6 +863,10 @@ def test_the_grids_hold_the_paper_s_cells():
     (["figure4", "--steps", "5000"], ["--steps 5000 does not exceed the random warm-up"]),
     (["figure4", "--set", "top_k=99"], ["top_k=99", "pop_size"]),
     (["figure4", "--eval", "often=3"], ["--eval 'often=3'", "every, episodes, steps"]),
+    (["figure4", "--set", "top_k=3", "--set", "pop_size=2"],  # repeated options add up
+     ["top_k=3 is invalid: must be in [1, pop_size=2]"]),
+    (["figure4", "--eval", "every=0", "--eval", "episodes=2", "--set", "top_k=99"],
+     ["EvaluationConfig.every=0 is invalid"]),
     (["figure4", "--steps", "0"], ["--steps must be a positive integer"]),
     (["figure4", "--concurrent", "0"], ["--concurrent must be a positive integer"]),
     (["figure4", "--seeds-per-program", "0"], ["--seeds-per-program must be a positive integer"]),

@@ -126,6 +126,34 @@ def test_figure6_compares_the_q_filtered_actors_with_the_sampled_ones(tmp_path):
     assert figure in written and figure.read_bytes()[:4] == b"\x89PNG"
 
 
+@pytest.mark.parametrize("steps, marker", [([5_000, 12_000], "o"),
+                                           ([5_000, 15_000, 25_000], "None")])
+def test_figure6_marks_a_curve_of_one_point_which_a_line_alone_would_not_show(tmp_path, steps,
+                                                                              marker):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    header = ["generation", "env_steps", "q_filter_active", "td3_in_population",
+              "return_0", "return_1", "return_2", "return_3"]
+    rundir.write_csv(tmp_path / "seed1_generations.csv", header, [
+        [g + 1, s, 1, 0, 10.0, 20.0, 30.0, 40.0] for g, s in enumerate(steps)])
+    axes = []
+
+    class Recording:  # pyplot, keeping the figure's axes
+        def subplots(self, **kwargs):
+            fig, ax = plt.subplots(**kwargs)
+            axes.append(ax)
+            return fig, ax
+
+        close = staticmethod(plt.close)
+
+    report._draw_q_filter(tmp_path, tmp_path / "figure.png", "halfcheetah", Recording())
+    lines = axes[0].get_lines()
+    assert len(lines) == 2 and {len(line.get_xdata()) for line in lines} == {len(steps) - 1}
+    assert [line.get_marker() for line in lines] == [marker, marker]
+
+
 def test_binned_means_average_each_finished_span_then_the_seeds():
     a = (np.array([5_000.0, 10_000.0, 15_000.0, 21_000.0, 30_000.0]),
          np.array([1.0, 2.0, 4.0, 8.0, 100.0]))

@@ -52,6 +52,21 @@ def test_ctrl_c_writes_a_checkpoint_then_resume_by_directory(task_runs, cache, t
     assert_same_run(run_dir, reference)
 
 
+def test_sigterm_before_the_loop_aborts_as_ctrl_c_does(cache, tmp_path):
+    """SIGTERM as soon as the run directory is locked (the programs not yet compiled, no
+    checkpoint written): the command says so and ends with status 130, not killed on the spot."""
+    run_dir = tmp_path / "terminated"
+    process = start("train", reduced("hopper", f"run_dir={run_dir}"), cache, tmp_path,
+                    tmp_path / "log")
+    wait_until((run_dir / rundir.LOCK).exists, process, poll=0.005)
+    process.send_signal(signal.SIGTERM)
+    process.wait(timeout=300)
+    log = (tmp_path / "log").read_text()
+    assert process.returncode == 130, log[-3000:]
+    assert "aborted (Ctrl-C or SIGTERM) without writing a checkpoint" in log
+    assert "Traceback" not in log
+
+
 def test_resuming_a_finished_run_changes_nothing(task_runs, tmp_path):
     reference, _ = task_runs("hopper")
     before = {p: p.read_bytes() for p in (reference / rundir.EVAL, reference / rundir.METRICS,

@@ -181,10 +181,11 @@ class CsvLog:
 
 
 class RunLock:
-    """An exclusive lock on a run directory (flock on `<run>/.lock`), held until `release` or
-    the process's end, SIGKILL included."""
+    """An exclusive lock on a run directory (flock on `<run>/.lock`, or `path`), held until
+    `release` or the process's end, SIGKILL included; `busy` is what the refusal advises."""
 
-    def __init__(self, path: pathlib.Path):
+    def __init__(self, path: pathlib.Path,
+                 busy: str = "wait for it to finish or stop it, or choose another run_dir"):
         self.path = path
         with writing(path):
             self._file = open(path, "a+")
@@ -194,8 +195,7 @@ class RunLock:
             self._file.seek(0)
             holder = self._file.read().strip() or "another process"
             self._file.close()
-            raise UsageError(f"{path.parent} is in use by {holder}; wait for it to finish or "
-                             "stop it, or choose another run_dir") from None
+            raise UsageError(f"{path.parent} is in use by {holder}; {busy}") from None
         with writing(path):
             self._file.seek(0)
             self._file.truncate()
@@ -203,8 +203,11 @@ class RunLock:
                              f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n")
             self._file.flush()
 
-    def release(self) -> None:
+    def release(self, remove: bool = False) -> None:
+        """Unlocks; with `remove`, deletes the lock file first, while still holding it."""
         if not self._file.closed:
+            if remove:
+                self.path.unlink(missing_ok=True)
             fcntl.flock(self._file, fcntl.LOCK_UN)
             self._file.close()
 

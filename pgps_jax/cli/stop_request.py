@@ -1,7 +1,9 @@
 """A stop asked for with SIGINT or SIGTERM, honoured between generations: the loops of
 `python -m pgps_jax.train` and of the paper experiments' cells write a checkpoint of the state
-they stopped at, so that the same command continues from there."""
+they stopped at, so that the same command continues from there. Before the loops (while the
+programs compile), `sigterm_as_ctrl_c` makes SIGTERM stop the command as Ctrl-C does."""
 
+import contextlib
 import signal
 import sys
 from typing import Optional
@@ -33,3 +35,19 @@ class StopRequest:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         return False
+
+
+@contextlib.contextmanager
+def sigterm_as_ctrl_c():
+    """While inside, SIGTERM raises KeyboardInterrupt as Ctrl-C does (Python's default for it
+    ends the process on the spot, skipping every `finally`); a `StopRequest` inside takes both
+    signals over for its loop."""
+    previous = signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _raise_keyboard_interrupt(signum, frame):
+    raise KeyboardInterrupt

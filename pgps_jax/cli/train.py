@@ -24,6 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from pgps_jax.cli.errors import EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE, print_error, report
 from pgps_jax.cli.plan import plan
 from pgps_jax.cli.run_config import CONFIG_DIR, check_overrides, register_structured_configs
+from pgps_jax.cli.stop_request import sigterm_as_ctrl_c
 
 
 def run(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> int:
@@ -38,10 +39,11 @@ def run(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> int:
         return EXIT_OK if outcome == "done" else EXIT_INTERRUPTED
 
     try:
-        return report(body)
+        with sigterm_as_ctrl_c():
+            return report(body)
     except KeyboardInterrupt:
-        print_error("aborted (Ctrl-C) without writing a checkpoint; any written before are "
-                    "intact")
+        print_error("aborted (Ctrl-C or SIGTERM) without writing a checkpoint; any written "
+                    "before are intact")
         return EXIT_INTERRUPTED
 
 

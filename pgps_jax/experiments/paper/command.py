@@ -33,6 +33,7 @@ from pgps_jax.agent.config import (SWITCHES, EvaluationConfig, PGPSConfig, check
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.assignments import assignments, env_assignments, field_types
 from pgps_jax.cli.errors import EXIT_INTERRUPTED, UsageError, print_error, report
+from pgps_jax.cli.stop_request import sigterm_as_ctrl_c
 from pgps_jax.envs import make_env
 from pgps_jax.experiments.paper import side_by_side
 from pgps_jax.experiments.paper.grid import EXPERIMENTS, Cell, cells
@@ -208,10 +209,13 @@ def write_final_returns(path: pathlib.Path, results: list[dict]) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pgps_jax.experiments.paper",
-                                     description=__doc__.split("\n")[0])
+                                     description=__doc__.split("\n")[0],
+                                     epilog="--tasks, --configs, --set, --eval and --env add "
+                                            "up when repeated; a field given twice takes "
+                                            "its last value.")
     parser.add_argument("experiment", help=", ".join(EXPERIMENTS))
-    parser.add_argument("--tasks", nargs="*", default=[])
-    parser.add_argument("--configs", nargs="*", default=[])
+    parser.add_argument("--tasks", nargs="*", default=[], action="extend")
+    parser.add_argument("--configs", nargs="*", default=[], action="extend")
     parser.add_argument("--steps", type=int, default=Budget.steps)
     parser.add_argument("--seeds", type=int, default=Budget.seeds)
     parser.add_argument("--seeds-per-program", type=int, default=None, metavar="S",
@@ -223,11 +227,11 @@ def main(argv=None) -> int:
     parser.add_argument("--checkpoint-every-s", type=float,
                         default=Budget.checkpoint_every_s, metavar="SECONDS",
                         help="seconds between checkpoints (default %(default)g)")
-    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+    parser.add_argument("--set", nargs="*", default=[], action="extend", metavar="FIELD=VALUE",
                         help="PGPSConfig fields replacing every cell's")
-    parser.add_argument("--eval", nargs="*", default=[], metavar="FIELD=VALUE",
+    parser.add_argument("--eval", nargs="*", default=[], action="extend", metavar="FIELD=VALUE",
                         help="EvaluationConfig fields (every, episodes, steps)")
-    parser.add_argument("--env", nargs="*", default=[], metavar="NAME=VALUE",
+    parser.add_argument("--env", nargs="*", default=[], action="extend", metavar="NAME=VALUE",
                         help="make_env keyword arguments: start_pose or Physics fields "
                              "(iterations, floor_contacts, ...)")
     parser.add_argument("--out", type=pathlib.Path, default=OUT)
@@ -281,7 +285,8 @@ def main(argv=None) -> int:
         return 0
 
     try:
-        return report(body)
+        with sigterm_as_ctrl_c():
+            return report(body)
     except KeyboardInterrupt:
         print_error("interrupted; the same command continues each cell from its last "
                     "checkpoint")

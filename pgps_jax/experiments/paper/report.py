@@ -212,8 +212,9 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
             if curves is None:
                 continue
             mean, std = curves.returns.mean(0), sample_std(curves.returns)
-            line, = ax.plot(curves.steps, mean, label=textwrap.fill(  # long --set lists wrap
-                f"{label} ({len(curves.returns)} seeds)", LEGEND_WIDTH))
+            line, = ax.plot(curves.steps, mean, marker=_lone_point(curves.steps),
+                            label=textwrap.fill(  # long --set lists wrap
+                                f"{label} ({len(curves.returns)} seeds)", LEGEND_WIDTH))
             ax.fill_between(curves.steps, mean - std, mean + std, alpha=0.2,
                             color=line.get_color())
         ax.set(title=task, xlabel="env steps",
@@ -283,6 +284,11 @@ def binned_means(series: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarra
     return (spans[seen] + 1) * GRID_STEP, np.nanmean(per_seed[:, seen], axis=0)
 
 
+def _lone_point(x: np.ndarray) -> Optional[str]:
+    """A marker for a curve of one point, which a line alone does not show."""
+    return "o" if len(x) == 1 else None
+
+
 def _draw_q_filter(directory: pathlib.Path, figure: pathlib.Path, task: str, plt
                    ) -> pathlib.Path:
     """Figure 6: the mean return of the Q-filtered and of the sampled actors per GRID_STEP env
@@ -293,7 +299,7 @@ def _draw_q_filter(directory: pathlib.Path, figure: pathlib.Path, task: str, plt
     if per_seed:
         for column, label in ((1, "Q-filtered actors"), (2, "randomly sampled actors")):
             ends, means = binned_means([(data[0], data[column]) for data in per_seed])
-            ax.plot(ends, means, label=label)
+            ax.plot(ends, means, marker=_lone_point(ends), label=label)
     ax.set(title=f"{task}: actors of the population", xlabel="env steps",
            ylabel=f"mean return per {GRID_STEP:,} steps")
     ax.legend(loc="upper left", fontsize=8)

@@ -56,7 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pgps_jax.agent.algorithms import make_agent
-from pgps_jax.agent.config import (EvaluationConfig, effective_fields, for_task,
+from pgps_jax.agent.config import (EvaluationConfig, PGPSConfig, effective_fields, for_task,
                                    saved_fields_as_run)
 from pgps_jax.agent.metrics import Metric, population_return_key, returns_key
 from pgps_jax.cli import loop
@@ -72,6 +72,8 @@ from pgps_jax.experiments.paper.grid import Cell
 RESULT = "result.json"
 AT_BUDGET = "at_budget.npz"
 CHECKPOINTS = "checkpoints"
+LOCK = "running.lock"
+"""Held by the process running a cell (or part) while it runs; removed when it stops."""
 PART = "_seeds"
 """What a part's own files add to the cell's names, before its seeds' span."""
 GENERATION_TIMES = "generation_times.csv"
@@ -220,7 +222,8 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     where the cell was done whole) and merging every part's into the cell's once all are
     done. A done cell or part is not run again; a part whose cell holds parts or checkpoints
     of other settings or of another split is refused. `on_generation(generation, env_steps
-    [the part's seeds])` is called after every generation."""
+    [the part's seeds])` is called after every generation. A cell or part runs in one process
+    at a time: a second, given the same while it runs, is refused (`LOCK`)."""
     seeds_done = done_seeds(directory)
     if part is None and 0 < seeds_done < budget.seeds:
         raise UsageError(f"{directory} holds this cell done with {seeds_done} seeds; run the "
@@ -232,6 +235,19 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     settings = _settings(cell.algo, config, budget, mesh.size, env)
     with rundir.writing(directory):
         directory.mkdir(parents=True, exist_ok=True)
+    lock = rundir.RunLock(directory / part_file(LOCK, part),
+                          busy="wait for it to finish or stop it, or give another --out")
+    try:
+        return _run_part(cell, directory, budget, part, config, env, settings, mesh,
+                         on_generation)
+    finally:
+        lock.release(remove=True)
+
+
+def _run_part(cell: Cell, directory: pathlib.Path, budget: Budget, part: Seeds,
+              config: PGPSConfig, env: MjxEnv, settings: dict, mesh: jax.sharding.Mesh,
+              on_generation: Optional[Callable[[int, np.ndarray], None]]) -> dict:
+    """`run_cell`'s work on `part` of `cell`, under its lock."""
     for done in dict.fromkeys((part_file(RESULT, part), RESULT)):
         if (directory / done).exists():
             result = json.loads((directory / done).read_text())
@@ -248,10 +264,10 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     numbers = jnp.arange(part.first, part.first + batch)
     keys = jax.device_put(jax.vmap(jax.random.PRNGKey)(numbers), sharding)
     eval_keys = jax.device_put(jax.vmap(jax.random.PRNGKey)(numbers + 100), sharding)
-    checkpoints = Checkpoints(directory / part_file(CHECKPOINTS, part), keep=2)
     at_budget_file = directory / part_file(AT_BUDGET, part)
     population_keys = [m.key for m in _population_metrics(agent)]
     start = time.perf_counter()
+    checkpoints = Checkpoints(directory / part_file(CHECKPOINTS, part), keep=2)
     try:
         if checkpoints.latest_step() is None:
             at_budget_file.unlink(missing_ok=True)  # an earlier run's, whose checkpoints went

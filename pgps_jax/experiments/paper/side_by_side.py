@@ -31,6 +31,7 @@ from typing import Callable, Optional, Sequence
 
 from pgps_jax.cli.errors import (EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, RunFailed, UsageError,
                                   report)
+from pgps_jax.cli.stop_request import sigterm_as_ctrl_c
 from pgps_jax.experiments.paper.grid import Cell
 from pgps_jax.experiments.paper.runner import Budget, Seeds, run_cell
 
@@ -122,10 +123,10 @@ def run_side_by_side(experiment: str, budget: Budget, units: Sequence[tuple[Cell
                for slot, job in zip(slots, jobs)]
     for thread in threads:
         thread.start()
-    terminate = signal.signal(signal.SIGTERM, _interrupt)
     try:
-        for thread in threads:
-            thread.join()
+        with sigterm_as_ctrl_c():
+            for thread in threads:
+                thread.join()
     except KeyboardInterrupt:  # each child stops; its cell continues from its checkpoint
         print("stopping: each program writes a checkpoint after its generation under way",
               file=sys.stderr)
@@ -137,16 +138,9 @@ def run_side_by_side(experiment: str, budget: Budget, units: Sequence[tuple[Cell
         for child in children:
             child.wait()
         raise
-    finally:
-        signal.signal(signal.SIGTERM, terminate)
     if failures:
         raise RunFailed(f"{experiment}: {len(failures)} of {len(units)} program(s) failed: "
                         + "; ".join(failures))
-
-
-def _interrupt(signum, frame):
-    """SIGTERM stops the programs as Ctrl-C does."""
-    raise KeyboardInterrupt
 
 
 def _locked(lock: threading.Lock, function: Callable, *args) -> None:
