@@ -181,8 +181,9 @@ class CsvLog:
 
 
 class RunLock:
-    """An exclusive lock on a run directory (flock on `<run>/.lock`, or `path`), held until
-    `release` or the process's end, SIGKILL included; `busy` is what the refusal advises."""
+    """An exclusive lock on a directory (flock on its file `path`: a run's `.lock`, a paper
+    cell's `running.lock`), held until `release` or the process's end, SIGKILL included;
+    `busy` is what a refusal advises."""
 
     def __init__(self, path: pathlib.Path,
                  busy: str = "wait for it to finish or stop it, or choose another run_dir"):
