@@ -3,6 +3,7 @@ authors' format, a cut-off cell that continues exactly, seeds split over two dev
 command line's errors."""
 
 import dataclasses
+import fcntl
 import json
 import os
 import pathlib
@@ -419,24 +420,48 @@ def test_a_signal_stops_a_cell_with_a_checkpoint_of_the_generation_it_stopped_at
     assert _timeless(resumed) == _timeless(result)
 
 
-def test_a_cell_running_in_another_process_is_refused_and_its_lock_goes_with_it(
+def test_a_seed_running_in_another_process_is_refused_and_its_lock_goes_with_it(
         uninterrupted, tmp_path):
-    """The lock of a running cell (here held by this process, as another would hold it)
-    refuses a second command given the same cell, naming the holder; a cell that ran leaves
-    no lock behind."""
+    """A seed's lock held by another process (here by this one, as another would hold it)
+    refuses a command given that seed, the whole cell included, naming the holder; the locks
+    it took go with it, and a cell that ran leaves none behind."""
     out, _ = uninterrupted
-    assert not (out / "figure4" / "hopper" / "pgps" / runner.LOCK).exists()
+    assert not list((out / "figure4" / "hopper" / "pgps").glob("*.lock"))
     directory = tmp_path / "cell"
     directory.mkdir()
-    held = rundir.RunLock(directory / runner.LOCK)
+    held = rundir.RunLock(directory / runner.seed_lock(2))
     try:
         with pytest.raises(UsageError, match=f"{re.escape(str(directory))} is in use by "
-                                             f"process {os.getpid()} on .*; wait for it to "
-                                             "finish or stop it, or give another --out"):
+                                             f"process {os.getpid()} on .*; seed 2 runs "
+                                             "there; wait for it to finish or stop it, or "
+                                             "give another --out"):
             runner.run_cell(HOPPER, directory, BUDGET)
     finally:
         held.release()
-    assert [p.name for p in directory.iterdir()] == [runner.LOCK]
+    assert [p.name for p in directory.iterdir()] == ["running_seed2.lock"]
+
+
+def test_a_lock_file_removed_by_its_holder_as_it_is_locked_is_locked_again_at_its_path(
+        tmp_path, monkeypatch):
+    """The holder's `release(remove=True)` deletes the file it holds: a process that opened it
+    just before then locks a file gone from the path, and must lock the one now there."""
+    path = tmp_path / "running_seed1.lock"
+    flock, removed = fcntl.flock, []
+
+    def after_its_holder_left(file, operation):
+        if not removed:  # the holder removes the file between this process's open and lock
+            removed.append(path.stat().st_ino)
+            path.unlink()
+        return flock(file, operation)
+    monkeypatch.setattr(fcntl, "flock", after_its_holder_left)
+    lock = rundir.RunLock(path)
+    monkeypatch.setattr(fcntl, "flock", flock)
+    assert os.fstat(lock._file.fileno()).st_ino == path.stat().st_ino
+    assert path.read_text().startswith(f"process {os.getpid()} on ")
+    with pytest.raises(UsageError, match="is in use by process"):
+        rundir.RunLock(path)
+    lock.release(remove=True)
+    assert not path.exists()
 
 
 def test_sigterm_while_the_programs_compile_stops_the_command_as_ctrl_c_does(tmp_path, cache):
@@ -447,8 +472,8 @@ def test_sigterm_while_the_programs_compile_stops_the_command_as_ctrl_c_does(tmp
                     "--out", str(tmp_path)]
     process = subprocess.Popen(command_line, cwd=REPO, env=cli_env(cache), text=True,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    lock = tmp_path / "figure4" / "hopper" / "pgps" / runner.LOCK
-    wait_until(lock.exists, process, poll=0.01)
+    lock = tmp_path / "figure4" / "hopper" / "pgps" / runner.seed_lock(1)
+    wait_until(lambda: lock.exists() and lock.read_text().endswith("\n"), process, poll=0.01)
     process.send_signal(signal.SIGTERM)
     _, stderr = process.communicate(timeout=120)
     assert process.returncode == 130, stderr[-2000:]

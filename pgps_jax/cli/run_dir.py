@@ -182,35 +182,58 @@ class CsvLog:
 
 class RunLock:
     """An exclusive lock on a directory (flock on its file `path`: a run's `.lock`, a paper
-    cell's `running.lock`), held until `release` or the process's end, SIGKILL included;
-    `busy` is what a refusal advises."""
+    cell's seed locks), held until `release` or the process's end, SIGKILL included; `busy` is
+    what a refusal advises."""
 
     def __init__(self, path: pathlib.Path,
                  busy: str = "wait for it to finish or stop it, or choose another run_dir"):
         self.path = path
-        with writing(path):
-            self._file = open(path, "a+")
+        while True:
+            with writing(path):
+                file = open(path, "a+")
+            try:
+                fcntl.flock(file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                file.seek(0)
+                holder = file.read().strip() or "another process"
+                file.close()
+                raise UsageError(f"{path.parent} is in use by {holder}; {busy}") from None
+            except BaseException:
+                file.close()
+                raise
+            if _is_file_at(file, path):
+                break
+            file.close()  # its holder removed it as this process locked it: lock the new one
+        self._file = file
         try:
-            fcntl.flock(self._file, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            self._file.seek(0)
-            holder = self._file.read().strip() or "another process"
-            self._file.close()
-            raise UsageError(f"{path.parent} is in use by {holder}; {busy}") from None
-        with writing(path):
-            self._file.seek(0)
-            self._file.truncate()
-            self._file.write(f"process {os.getpid()} on {socket.gethostname()}, started "
-                             f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n")
-            self._file.flush()
+            with writing(path):
+                file.seek(0)
+                file.truncate()
+                file.write(f"process {os.getpid()} on {socket.gethostname()}, started "
+                           f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+                file.flush()
+        except BaseException:  # Ctrl-C, say: no lock left behind
+            self.release(remove=True)
+            raise
 
     def release(self, remove: bool = False) -> None:
-        """Unlocks; with `remove`, deletes the lock file first, while still holding it."""
+        """Unlocks; with `remove`, deletes the lock file first, while still holding it (a
+        process that locked it meanwhile finds it gone, and locks the one then at `path`)."""
         if not self._file.closed:
             if remove:
                 self.path.unlink(missing_ok=True)
             fcntl.flock(self._file, fcntl.LOCK_UN)
             self._file.close()
+
+
+def _is_file_at(file, path: pathlib.Path) -> bool:
+    """Whether the open `file` is the one now at `path`."""
+    try:
+        at_path = os.stat(path)
+    except FileNotFoundError:
+        return False
+    opened = os.fstat(file.fileno())
+    return (opened.st_dev, opened.st_ino) == (at_path.st_dev, at_path.st_ino)
 
 
 class RunDir:

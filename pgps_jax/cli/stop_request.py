@@ -1,7 +1,7 @@
 """A stop asked for with SIGINT or SIGTERM, honoured between generations: the loops of
 `python -m pgps_jax.train` and of the paper experiments' cells write a checkpoint of the state
-they stopped at, so that the same command continues from there. Before the loops (while the
-programs compile), `sigterm_as_ctrl_c` makes SIGTERM stop the command as Ctrl-C does."""
+they stopped at, so that the same command continues from there. Outside the loops (while the
+programs compile, say), `sigterm_as_ctrl_c` makes SIGTERM stop the command as Ctrl-C does."""
 
 import contextlib
 import signal

@@ -42,8 +42,8 @@ def run(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> int:
         with sigterm_as_ctrl_c():
             return report(body)
     except KeyboardInterrupt:
-        print_error("aborted (Ctrl-C or SIGTERM) without writing a checkpoint; any written "
-                    "before are intact")
+        print_error("aborted (Ctrl-C or SIGTERM) outside the generations' loop; the "
+                    "checkpoints written before are intact")
         return EXIT_INTERRUPTED
 
 

@@ -72,8 +72,6 @@ from pgps_jax.experiments.paper.grid import Cell
 RESULT = "result.json"
 AT_BUDGET = "at_budget.npz"
 CHECKPOINTS = "checkpoints"
-LOCK = "running.lock"
-"""Held by the process running a cell (or part) while it runs; removed when it stops."""
 PART = "_seeds"
 """What a part's own files add to the cell's names, before its seeds' span."""
 GENERATION_TIMES = "generation_times.csv"
@@ -206,6 +204,12 @@ def playing_seeds(steps: np.ndarray, budget: Budget, lead: int, seeds: int) -> n
     return below & (steps <= steps[below].min() + lead)
 
 
+def seed_lock(seed: int) -> str:
+    """The file locked by the process that runs `seed` of a cell (whole or in a part) while it
+    runs; removed when it stops, unless killed."""
+    return f"running_seed{seed}.lock"
+
+
 def part_file(name: str, part: Seeds) -> str:
     """A part's own file of the cell's file `name` (`RESULT`, `AT_BUDGET`, `CHECKPOINTS`,
     `GENERATION_TIMES`): the same for the whole cell."""
@@ -222,8 +226,9 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     where the cell was done whole) and merging every part's into the cell's once all are
     done. A done cell or part is not run again; a part whose cell holds parts or checkpoints
     of other settings or of another split is refused. `on_generation(generation, env_steps
-    [the part's seeds])` is called after every generation. A cell or part runs in one process
-    at a time: a second, given the same while it runs, is refused (`LOCK`)."""
+    [the part's seeds])` is called after every generation. Each seed runs in one process at
+    a time: one given a seed that another is running, in the whole cell or a part, is refused
+    (`seed_lock`)."""
     seeds_done = done_seeds(directory)
     if part is None and 0 < seeds_done < budget.seeds:
         raise UsageError(f"{directory} holds this cell done with {seeds_done} seeds; run the "
@@ -235,13 +240,17 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
     settings = _settings(cell.algo, config, budget, mesh.size, env)
     with rundir.writing(directory):
         directory.mkdir(parents=True, exist_ok=True)
-    lock = rundir.RunLock(directory / part_file(LOCK, part),
-                          busy="wait for it to finish or stop it, or give another --out")
+    locks = []
     try:
+        for seed in part.numbers:
+            locks.append(rundir.RunLock(directory / seed_lock(seed), busy=f"seed {seed} runs "
+                                        "there; wait for it to finish or stop it, or give "
+                                        "another --out"))
         return _run_part(cell, directory, budget, part, config, env, settings, mesh,
                          on_generation)
     finally:
-        lock.release(remove=True)
+        for lock in locks:
+            lock.release(remove=True)
 
 
 def _run_part(cell: Cell, directory: pathlib.Path, budget: Budget, part: Seeds,

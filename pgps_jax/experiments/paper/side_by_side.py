@@ -134,7 +134,7 @@ def run_side_by_side(experiment: str, budget: Budget, units: Sequence[tuple[Cell
             stopping.set()
             for child in children:
                 if child.poll() is None:
-                    child.send_signal(signal.SIGINT)
+                    child.send_signal(signal.SIGTERM)  # a stop, also after one of its own
         for child in children:
             child.wait()
         raise
@@ -194,7 +194,8 @@ def _child() -> int:
         progress(result["generations"], result["env_steps"])  # a cell done before, too
         return EXIT_OK
     try:
-        return report(body)
+        with sigterm_as_ctrl_c():
+            return report(body)
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
     except Exception as e:  # one line for the parent to name (an out-of-memory error, say)
