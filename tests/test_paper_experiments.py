@@ -446,12 +446,12 @@ def test_a_lock_file_removed_by_its_holder_as_it_is_locked_is_locked_again_at_it
     """The holder's `release(remove=True)` deletes the file it holds: a process that opened it
     just before then locks a file gone from the path, and must lock the one now there."""
     path = tmp_path / "running_seed1.lock"
-    flock, removed = fcntl.flock, []
+    flock, holder_left = fcntl.flock, []
 
     def after_its_holder_left(file, operation):
-        if not removed:  # the holder removes the file between this process's open and lock
-            removed.append(path.stat().st_ino)
+        if not holder_left:  # the holder removes the file between this process's open and lock
             path.unlink()
+            holder_left.append(True)
         return flock(file, operation)
     monkeypatch.setattr(fcntl, "flock", after_its_holder_left)
     lock = rundir.RunLock(path)

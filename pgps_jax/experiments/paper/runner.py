@@ -256,7 +256,7 @@ def run_cell(cell: Cell, directory: pathlib.Path, budget: Budget,
 def _run_part(cell: Cell, directory: pathlib.Path, budget: Budget, part: Seeds,
               config: PGPSConfig, env: MjxEnv, settings: dict, mesh: jax.sharding.Mesh,
               on_generation: Optional[Callable[[int, np.ndarray], None]]) -> dict:
-    """`run_cell`'s work on `part` of `cell`, under its lock."""
+    """`run_cell`'s work on `part` of `cell`, under its seeds' locks."""
     for done in dict.fromkeys((part_file(RESULT, part), RESULT)):
         if (directory / done).exists():
             result = json.loads((directory / done).read_text())
