@@ -50,7 +50,20 @@ def _curve(path, steps, means):
                      [[i, s, m, 0.0, m] for i, (s, m) in enumerate(zip(steps, means))])
 
 
-def test_the_report_draws_each_run_beside_the_paper_and_tabulates_the_done_ones(tmp_path):
+def test_the_report_draws_each_run_beside_the_paper_and_tabulates_the_done_ones(tmp_path,
+                                                                               monkeypatch):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    axes, subplots = [], plt.subplots
+
+    def recording_subplots(**kwargs):
+        fig, ax = subplots(**kwargs)
+        axes.append(ax)
+        return fig, ax
+
+    monkeypatch.setattr(plt, "subplots", recording_subplots)
     out, reference = tmp_path / "results", tmp_path / "reference"
     steps = [10_000, 20_000, 30_000]
     done = out / "table1" / "ant" / "pgps"
@@ -73,6 +86,8 @@ def test_the_report_draws_each_run_beside_the_paper_and_tabulates_the_done_ones(
     assert written == [figure, out / "table1" / "table1.md", table]
     assert len((out / "table1" / "table1.md").read_text().splitlines()) == 2  # no base done
     assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert [t.get_text() for t in axes[0].get_legend().get_texts()] == [
+        "ours: base (1 seed)", "ours: pgps (3 seeds)", "paper: PGPS (2 seeds)"]
     rows = [line.split(" | ") for line in table.read_text().splitlines()[2:]]
     ours = np.array([100.0, 250.0, 400.0])
     low, high = report.stratified_bootstrap_ci([ours], jax.random.PRNGKey(report.BOOTSTRAP_SEED))

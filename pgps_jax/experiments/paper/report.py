@@ -214,7 +214,7 @@ def write_report(experiment: str, out: pathlib.Path, reference: pathlib.Path = R
             mean, std = curves.returns.mean(0), sample_std(curves.returns)
             line, = ax.plot(curves.steps, mean, marker=_lone_point(curves.steps),
                             label=textwrap.fill(  # long --set lists wrap
-                                f"{label} ({len(curves.returns)} seeds)", LEGEND_WIDTH))
+                                f"{label} ({_seed_count(len(curves.returns))})", LEGEND_WIDTH))
             ax.fill_between(curves.steps, mean - std, mean + std, alpha=0.2,
                             color=line.get_color())
         ax.set(title=task, xlabel="env steps",
@@ -282,6 +282,10 @@ def binned_means(series: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarra
     per_seed = np.array(per_seed).reshape(len(series), len(spans))
     seen = ~np.all(np.isnan(per_seed), axis=0)
     return (spans[seen] + 1) * GRID_STEP, np.nanmean(per_seed[:, seen], axis=0)
+
+
+def _seed_count(count: int) -> str:
+    return f"{count} seed" if count == 1 else f"{count} seeds"
 
 
 def _lone_point(x: np.ndarray) -> Optional[str]:
