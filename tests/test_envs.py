@@ -342,3 +342,17 @@ def test_brax_training_wrappers_run_our_task():
     np.testing.assert_array_equal(np.stack(steps)[:, 0], [1, 2, 3, 1])  # restarted after 3
     np.testing.assert_array_equal(np.stack(truncated)[:, 0], [0, 0, 1, 0])
     assert "unstable" in state.metrics and np.isfinite(state.obs).all()
+
+
+@pytest.mark.parametrize("declared", [1, 4])
+def test_an_action_size_that_the_physics_does_not_take_is_named(declared):
+    """One action would broadcast into hopper's three controls and train silently."""
+    from pgps_jax.agent.rollout import random_warmup
+
+    env = make_env("hopper")
+    mis_declared = type("MisDeclared", (type(env),),
+                        {"action_size": property(lambda self: declared)})
+    env = mis_declared(**type(env).constructor_arguments())
+    with pytest.raises(ValueError, match=rf"controls of shape \(3,\) \(pipeline_state.ctrl\) "
+                                         rf"but the env declares action_size {declared}"):
+        jax.eval_shape(lambda key: random_warmup(env, key, 2, 2, 2), jax.random.PRNGKey(0))

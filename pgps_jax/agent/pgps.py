@@ -79,7 +79,8 @@ class PGPS(Agent):
     - unbatched: `reset(key)` and `step(state, action)` act on one episode (PGPS vmaps them);
     - `obs` is a flat vector of `observation_size`, `reward` and `done` scalars (a reset of
       other shapes raises ValueError naming the field);
-    - `step` takes actions in [-1, 1]^`action_size` as they are;
+    - `step` takes actions in [-1, 1]^`action_size` as they are (a physics whose state has
+      controls, `pipeline_state.ctrl`, has `action_size` of them, else ValueError);
     - `reset` and `step` give states of the same structure: the same `metrics` and `info`
       keys, arrays of the same shapes and dtypes (a mismatch raises ValueError naming them);
     - `done` (any numeric dtype) ends an episode, as terminal unless `info["truncation"]` is

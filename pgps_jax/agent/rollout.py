@@ -74,7 +74,8 @@ def _discount(state: State) -> jax.Array:
 
 def check_reset(env: Env, state: State) -> None:
     """Raises ValueError naming the field if a batch [B] of `reset` states breaks the Env
-    contract's shapes: `obs` [observation_size], `reward` and `done` scalars per episode."""
+    contract's shapes: `obs` [observation_size], `reward` and `done` scalars per episode, and
+    the physics' controls (`pipeline_state.ctrl`, where it has them) [action_size]."""
     batch = jnp.shape(state.reward)[:1]
     wanted = {"obs": batch + (env.observation_size,), "reward": batch, "done": batch}
     for field, shape in wanted.items():
@@ -84,6 +85,12 @@ def check_reset(env: Env, state: State) -> None:
                 f"the env's reset gives {field} of shape {found[1:]} per episode, but the env "
                 f"contract needs {shape[1:]} (observation_size {env.observation_size}: a flat "
                 "observation vector, a scalar reward and done)")
+    controls = getattr(state.pipeline_state, "ctrl", None)
+    if controls is not None and jnp.shape(controls)[1:] != (env.action_size,):
+        raise ValueError(
+            f"the env's physics takes controls of shape {jnp.shape(controls)[1:]} "
+            f"(pipeline_state.ctrl) but the env declares action_size {env.action_size}: step "
+            "takes the actions as they are, so action_size must be the number of controls")
 
 
 def check_step_keeps_the_state(before: State, after: State) -> None:
