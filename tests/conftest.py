@@ -57,6 +57,32 @@ on Euler's integrator, one forward pass each instead of RK4's four (`test_envs` 
 RK4 step)."""
 
 
+SLOW_MODULES_FIRST = ("test_baselines.py", "test_warp_physics.py", "test_tasks.py",
+                      "test_pgps.py", "test_fused_solve.py", "test_couplings.py",
+                      "test_jaxpr_rewrite.py", "test_waiting_seeds.py", "test_time_split.py",
+                      "test_td3.py", "test_small_linalg.py", "test_landscape.py")
+"""The modules of the longest tests outside an xdist group (tens of seconds of compiling
+each), slowest first: pytest-xdist hands out the groups first, then the other tests in the
+order collected, and with these first the workers end the run on short tests together."""
+QUICK_MODULES_LAST = ("test_benchmark_physics.py", "test_buffer.py", "test_cem.py",
+                      "test_compile_ahead.py", "test_config.py", "test_field_types.py",
+                      "test_paper_report.py", "test_qfilter.py", "test_rollout.py",
+                      "test_run_config.py", "test_run_physics.py")
+"""Modules of tests of a second or less each: the last ones handed out."""
+
+
+def pytest_collection_modifyitems(items):
+    """`SLOW_MODULES_FIRST`, in that order, then the modules not named, then
+    `QUICK_MODULES_LAST`; each module's tests stay together and in their order (every worker
+    collects the same order)."""
+    def rank(item):
+        module = item.path.name
+        if module in SLOW_MODULES_FIRST:
+            return SLOW_MODULES_FIRST.index(module)
+        return len(SLOW_MODULES_FIRST) + (module in QUICK_MODULES_LAST)
+    items.sort(key=rank)
+
+
 def reduced(task: str, *overrides: str) -> list[str]:
     """`env=<task>` with REDUCED, `overrides` replacing settings of the same key."""
     merged = {a.split("=", 1)[0]: a for a in (f"env={task}", *REDUCED)}
