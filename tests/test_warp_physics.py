@@ -122,10 +122,14 @@ def test_a_cell_trains_on_warp(tmp_path):
     states on the way (the cell spent time writing them; they are removed once it is done): two
     seeds whose episodes end apart, so that they reach the budget in different generations
     (one waits for the other), with finite returns and Warp recorded as the cell's physics.
-    Half the reduced budget (the Q-filter, from 400 steps, does not start): on a CPU each of
-    Warp's env steps takes about 0.15 s."""
-    budget = dataclasses.replace(REDUCED_CELL, steps=REDUCED_CELL.steps // 2,
-                                 env=(("impl", "warp"),))
+    A sixth of the reduced budget after a fifth of its warm-up (40 random steps, then two or
+    three generations; the Q-filter, from 400 steps, does not start), with test episodes of
+    20 steps: on a CPU each of Warp's env steps takes about 0.15 s."""
+    overrides = dict(REDUCED_CELL.overrides, warmup_steps=40)
+    budget = dataclasses.replace(REDUCED_CELL, steps=100, env=(("impl", "warp"),),
+                                 overrides=tuple(overrides.items()),
+                                 evaluation=dataclasses.replace(REDUCED_CELL.evaluation,
+                                                                steps=20))
     (result,) = command.run("figure4", tmp_path, budget, tasks=["hopper"], configs=["pgps"],
                             progress=False)
     assert min(result["env_steps"]) >= budget.steps
