@@ -273,7 +273,7 @@ def test_the_peers_run_seeds_side_by_side_as_each_alone_and_skip_the_done_ones(t
     (The processes share the session's compilation cache: the second run loads the first's
     programs.)"""
     command = [sys.executable, "-m", "benchmarks.peers", "--algo", "ppo", "--task", "point",
-               "--steps", "16384", "--eval-every", "8192", "--out", str(tmp_path)]
+               "--steps", "8192", "--eval-every", "8192", "--out", str(tmp_path)]
     root = pathlib.Path(__file__).parents[1]
     env = cli_env(cache)
     side = subprocess.run(command + ["--seeds", "2", "--concurrent", "2"], cwd=root, env=env,
@@ -283,7 +283,7 @@ def test_the_peers_run_seeds_side_by_side_as_each_alone_and_skip_the_done_ones(t
     together = {k: (cell / f"seed{k}.csv").read_text() for k in (1, 2)}
     result = json.loads((cell / "result.json").read_text())
     records = [json.loads((cell / f"seed{k}.json").read_text()) for k in (1, 2)]
-    assert result["seeds"] == [1, 2] and result["env_steps"] == [16384, 16384]
+    assert result["seeds"] == [1, 2] and result["env_steps"] == [8192, 8192]
     assert result["final"]["policy"] == [r["final"] for r in records]
     assert [float(together[k].splitlines()[-1].split(",")[2]) for k in (1, 2)] == \
         result["final"]["policy"]
@@ -292,14 +292,14 @@ def test_the_peers_run_seeds_side_by_side_as_each_alone_and_skip_the_done_ones(t
     alone = subprocess.run(command + ["--seeds", "2"], cwd=root, env=env, capture_output=True,
                            text=True)
     assert alone.returncode == 0, alone.stderr
-    assert "seed 1:" not in alone.stdout and "seed 2: step 16,384" in alone.stdout
+    assert "seed 1:" not in alone.stdout and "seed 2: step 8,192" in alone.stdout
     assert (cell / "seed2.csv").read_text() == together[2]
 
-    from benchmarks.peers import done_seeds, run_settings  # what `--steps 8192` checks
+    from benchmarks.peers import done_seeds, run_settings  # what `--steps 16384` checks
     from pgps_jax.cli.errors import UsageError
-    with pytest.raises(UsageError, match="seed 1 .* ran with --steps 16384, this command asks "
-                                         "8192"):
-        done_seeds(cell, "point", [1, 2], run_settings("point", 8192, 8192, True, {}))
+    with pytest.raises(UsageError, match="seed 1 .* ran with --steps 8192, this command asks "
+                                         "16384"):
+        done_seeds(cell, "point", [1, 2], run_settings("point", 16384, 8192, True, {}))
 
 
 def test_a_peer_seed_counts_as_done_on_the_physics_it_ran_on(tmp_path):
