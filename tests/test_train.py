@@ -4,6 +4,7 @@ re-evaluation, bad inputs (message, non-zero exit, nothing half-written) and a N
 import json
 import pathlib
 import shutil
+import weakref
 
 import imageio.v3 as iio
 import jax.numpy as jnp
@@ -12,7 +13,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from pgps_jax.cli import train
+from pgps_jax.cli import loop, train
 from pgps_jax.cli.errors import EXIT_FAILED
 from pgps_jax.agent import metrics as schema
 from pgps_jax.cli import run_dir as rundir
@@ -28,11 +29,12 @@ pytestmark = pytest.mark.xdist_group("train_point")  # one worker makes the refe
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory, cache):
-    """An uninterrupted tiny run with the progress bar on."""
+def reference(tmp_path_factory):
+    """An uninterrupted tiny run with the progress bar on (in this process: the tests' later
+    runs of its settings reuse its compiled programs)."""
     work = tmp_path_factory.mktemp("work")
     run_dir = work / "ref"
-    result = run("train", tiny("progress=true", f"run_dir={run_dir}"), cache, work)
+    result = run_here("train", tiny("progress=true", f"run_dir={run_dir}"), work)
     assert result.returncode == 0, result.stderr[-3000:]
     return run_dir, result
 
@@ -266,14 +268,13 @@ def test_a_checkpoint_from_before_the_clock_resumes_by_directory_on_generations(
     assert evaluated.returncode == 0, evaluated.stderr[-2000:]
 
 
-def test_checkpoints_follow_the_clock_where_no_generations_are_given(cache, tmp_path):
+def test_checkpoints_follow_the_clock_where_no_generations_are_given(tmp_path):
     """checkpoint_every=null: a checkpoint after every generation that ends checkpoint_every_s
-    after the last one (here: every generation). In a process of its own: in this one, a
-    later run of the same settings would reuse its compiled programs."""
+    after the last one (here: every generation)."""
     run_dir = tmp_path / "clock"
-    result = run("train", tiny(f"run_dir={run_dir}", "checkpoint_every=null",
-                               "checkpoint_every_s=1e-9", "keep_checkpoints=100"),
-                 cache, tmp_path)
+    result = run_here("train", tiny(f"run_dir={run_dir}", "checkpoint_every=null",
+                                    "checkpoint_every_s=1e-9", "keep_checkpoints=100"),
+                      tmp_path)
     assert result.returncode == 0, result.stderr[-2000:]
     _, metrics = read_csv(run_dir / rundir.METRICS)
     assert checkpoint_steps(run_dir) == list(range(1, len(metrics) + 1))
@@ -308,7 +309,8 @@ def test_resume_by_directory_takes_settings_equal_to_the_checkpoint_s(reference)
 
 def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(
         monkeypatch, tmp_path, capsys):
-    """The learning phase is wrapped to report a NaN critic loss at generation 3."""
+    """The learning phase is wrapped to report a NaN critic loss at generation 3 (compiled
+    afresh: not the programs that an earlier run of these settings left in this process)."""
     learn = PGPS.learn
 
     def poisoned(agent, state, played):
@@ -317,6 +319,7 @@ def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(
         return state, {**metrics, "td3/critic_loss": loss}
 
     monkeypatch.setattr(PGPS, "learn", poisoned)
+    monkeypatch.setattr(loop, "_JITTED", weakref.WeakKeyDictionary())
     run_dir = tmp_path / "nan"
     overrides = tiny("checkpoint_every=1", f"run_dir={run_dir}")
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
