@@ -11,6 +11,8 @@ from pgps_jax.agent.pgps import PGPS
 from pgps_jax.experiments.paper.grid import cells
 from test_pgps import ENV, SMALL, TESTS, programs
 
+pytestmark = pytest.mark.xdist_group("couplings")  # one worker compiles SMALL's program once
+
 MODELS = {cell.config: SMALL.replace(**cell.overrides)
           for cell in cells("table1", tasks=("ant",))}
 """Table 1's cumulative models (Base ... PGPS) as configurations of SMALL."""
@@ -29,8 +31,7 @@ def test_a_model_s_couplings_play_and_learn_as_its_configuration_exactly(name):
     """In SMALL's program (every coupling on), without vmap: the same state and metrics as
     the model's own program; counters, switches and keys exactly, floats to the last bits
     that another program's kernels may change."""
-    agent = PGPS(SMALL, ENV, TESTS)
-    init, step = jax.jit(agent.init), jax.jit(agent.generation_step)
+    _, init, step = programs(SMALL, donate=False)  # PGPS(SMALL, ENV, TESTS), jitted
     _, init_alone, step_alone = programs(MODELS[name], donate=False)
     key = jax.random.PRNGKey(7)
     switched = init(key, key + 100, couplings_of(SMALL, MODELS[name]))
@@ -83,9 +84,8 @@ def test_table1_models_in_one_program_train_as_each_alone():
 
 def test_the_models_differ_where_their_couplings_do():
     """Not a vacuous equality: the switches change what the program computes."""
-    agent = PGPS(SMALL, ENV, TESTS)
+    _, init, step = programs(SMALL, donate=False)  # PGPS(SMALL, ENV, TESTS), jitted
     base, full = couplings_of(SMALL, MODELS["base"]), couplings_of(SMALL, SMALL)
-    init, step = jax.jit(agent.init), jax.jit(agent.generation_step)
     a, b = init(jax.random.PRNGKey(5), None, base), init(jax.random.PRNGKey(5), None, full)
     for _ in range(3):
         (a, metrics_a), (b, metrics_b) = step(a), step(b)
