@@ -3,6 +3,7 @@ episodes, the TD3 actor lagging), each part timed alone computes what the genera
 in it, and a model's split has Table 1's columns."""
 
 import dataclasses
+import functools
 import pathlib
 import tempfile
 
@@ -20,14 +21,31 @@ from pgps_jax.agent.pgps import PGPS, fell_behind
 from pgps_jax.envs import make_env
 
 
+pytestmark = pytest.mark.xdist_group("time_split")  # one worker compiles the programs once
+
+
+@functools.lru_cache(maxsize=None)
 def point_pgps(pop_size: int, **overrides) -> tuple[PGPS, object]:
-    """A tiny PGPS on the point mass, Q-filtering from the start, and its initial state."""
+    """A tiny PGPS on the point mass, Q-filtering from the start, and its initial state (made
+    once per settings and worker; the state is never donated)."""
     config = PGPSConfig(pop_size=pop_size, top_k=pop_size // 2, actor_hidden=(8,),
                         critic_hidden=(8,), batch_size=8, buffer_size=500, warmup_steps=40,
                         t_init=10, t_max=10, q_filter_start=0, sample_ratio=2, ss1_size=4,
                         ss2_size=8, **overrides)
     agent = PGPS(config, make_env("point"), EvaluationConfig(every=100, episodes=1, steps=10))
     return agent, jax.jit(agent.init)(jax.random.PRNGKey(0), jax.random.PRNGKey(1))
+
+
+@functools.lru_cache(maxsize=None)
+def jitted_generation(agent: PGPS):
+    """`lagging_generation` of `agent`, jitted (once per agent and worker)."""
+    return jax.jit(lambda s: lagging_generation(agent, s))
+
+
+@functools.lru_cache(maxsize=None)
+def jitted_parts(agent: PGPS) -> dict:
+    """`parts_of(agent)`, each part's function jitted (once per agent and worker)."""
+    return {name: (jax.jit(part), inputs) for name, (part, inputs) in parts_of(agent).items()}
 
 
 def model_state(agent: PGPS, state, **couplings):
@@ -50,7 +68,7 @@ def test_full_episodes_leave_the_task_as_it_is_but_never_end_it():
 
 def test_the_lagging_generation_trains_on_the_augmented_loss_only_where_ea_guides_pg():
     agent, state = point_pgps(pop_size=4)
-    generation = jax.jit(lambda s: lagging_generation(agent, s))
+    generation = jitted_generation(agent)
     for ea_guides_pg in (False, True):
         _, metrics, played = generation(model_state(agent, state, ea_guides_pg=ea_guides_pg))
         assert bool(metrics["td3/guided_loss"]) == ea_guides_pg
@@ -82,10 +100,10 @@ def test_each_part_alone_computes_what_the_generation_computed_in_it(couplings, 
     the full model with the TD3 target actor reset to the elite."""
     agent, state = point_pgps(pop_size=4, **overrides)
     state = model_state(agent, state, **couplings)
-    after, metrics, played = jax.jit(lambda s: lagging_generation(agent, s))(state)
+    after, metrics, played = jitted_generation(agent)(state)
     guided = metrics["td3/guided_loss"]
-    parts = {name: jax.jit(part)(*inputs(state, played, after, guided))
-             for name, (part, inputs) in parts_of(agent).items()}
+    parts = {name: part(*inputs(state, played, after, guided))
+             for name, (part, inputs) in jitted_parts(agent).items()}
     # compiled alone, the sampling may round apart from the generation's (XLA fuses it otherwise)
     np.testing.assert_allclose(parts["population_generation"], played.population, rtol=1e-6)
     jax.tree.map(np.testing.assert_array_equal, parts["cem_update"], after.cem)
@@ -96,9 +114,7 @@ def test_each_part_alone_computes_what_the_generation_computed_in_it(couplings, 
 
 def test_a_model_s_split_has_table1_s_columns_and_says_whether_it_trained_on_l_a():
     agent, state = point_pgps(pop_size=4)
-    generation = jax.jit(lambda s: lagging_generation(agent, s))
-    parts = {name: (jax.jit(part), inputs) for name, (part, inputs) in parts_of(agent).items()}
-    split = model_split(generation, parts, state, repeats=2)
+    split = model_split(jitted_generation(agent), jitted_parts(agent), state, repeats=2)
     ms = split["ms_per_generation"]
     assert set(ms) == {phase for phase, _ in TABLE1_COLUMNS}
     assert split["guided"] is True  # the full model's TD3 actor, lagging, trained on L^A
