@@ -6,7 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from pgps_jax.agent.config import TASK_NAMES, EvaluationConfig, PGPSConfig, for_task
+from pgps_jax.agent.config import (TASK_NAMES, EvaluationConfig, PGPSConfig, check_for_algorithm,
+                                    for_task, recorded_episodes)
 
 
 def test_defaults_are_table_3():
@@ -55,9 +56,8 @@ def test_unknown_task_lists_choices():
     (dict(t_init=2000), "t_init", "<= t_max=1000"),
     (dict(fell_behind_rule="median"), "fell_behind_rule", "one of mean_minus_std, mean"),
     (dict(beta_adapted="later"), "beta_adapted", "one of before_block, after_block"),
-    (dict(buffer_size=5000, warmup_steps=1000), "buffer_size", "10 episodes × t_max = 10000"),
-    (dict(buffer_size=10_000, warmup_steps=1000, pg_guides_ea=False), "buffer_size",
-     "11 episodes × t_max = 11000"),
+    (dict(pop_size=6, top_k=3, buffer_size=1000, warmup_steps=1000), "warmup_steps",
+     "1002 rows"),
 ])
 def test_invalid_values_name_field_value_and_range(changes, field, hint):
     with pytest.raises(ValueError) as err:
@@ -66,6 +66,25 @@ def test_invalid_values_name_field_value_and_range(changes, field, hint):
     assert f"PGPSConfig.{field}=" in message
     assert repr(changes[field]) in message
     assert hint in message
+
+
+@pytest.mark.parametrize("algo, changes, episodes", [
+    ("pgps", dict(), 10),
+    ("pgps", dict(pg_guides_ea=False), 11),       # the TD3 actor's extra episode
+    ("cemrl", dict(), 10),
+    ("td3", dict(exploring_episodes=3), 3),
+])
+def test_the_buffer_holds_one_generation_of_the_algorithm_s_recorded_episodes(
+        algo, changes, episodes):
+    rows = episodes * 1000
+    config = for_task("halfcheetah", algo, buffer_size=rows, warmup_steps=1000, **changes)
+    assert recorded_episodes(algo, config) == episodes
+    check_for_algorithm(algo, config)
+    small = config.replace(buffer_size=rows - 1)
+    with pytest.raises(ValueError) as err:
+        check_for_algorithm(algo, small)
+    assert f"PGPSConfig.buffer_size={rows - 1}" in str(err.value)
+    assert f"{episodes} episodes × t_max = {rows}" in str(err.value)
 
 
 @pytest.mark.parametrize("changes, field, valid", [

@@ -289,6 +289,32 @@ def test_resume_by_directory_refuses_other_explicit_settings(reference, tmp_path
     assert _snapshot(run_dir) == before
 
 
+@pytest.mark.parametrize("extra, named", [
+    (lambda other: [f"run_dir={other}"], "run_dir="),
+    (lambda other: [f"output_dir={other}"], "output_dir="),
+])
+def test_resume_by_directory_refuses_another_directory_beside_it(reference, tmp_path, extra,
+                                                                  named):
+    run_dir, _ = reference
+    before = _snapshot(run_dir)
+    result = run_here("train", [f"resume={run_dir}", *extra(tmp_path / "other")], tmp_path)
+    assert result.returncode == 2
+    assert named in result.stderr and "would be ignored" in result.stderr
+    assert _snapshot(run_dir) == before and not (tmp_path / "other").exists()
+
+
+def test_resume_refuses_a_budget_below_the_steps_taken(reference, tmp_path):
+    """A run cannot be shortened: resuming with total_steps under the checkpoint's env steps
+    is refused and leaves its recorded settings as they were."""
+    run_dir, _ = reference
+    before = _snapshot(run_dir)
+    result = run_here("train", [f"resume={run_dir}", f"total_steps={TOTAL // 2}"], tmp_path)
+    assert result.returncode == 2
+    assert f"total_steps={TOTAL // 2} is below the" in result.stderr
+    assert "cannot be shortened" in result.stderr
+    assert _snapshot(run_dir) == before
+
+
 def test_resume_by_directory_takes_settings_equal_to_the_checkpoint_s(reference):
     """Each of these values, alone, breaks a rule against the command line's defaults
     (top_k=5 > pop_size, t_init=400 > t_max, warmup_steps=10,000 > buffer_size); against the

@@ -226,13 +226,26 @@ SWITCHES = ("pg_guides_ea", "ea_guides_pg", "q_filter", "increasing_steps")
 `Couplings` carries them); the baselines have none of them."""
 
 
+def recorded_episodes(algo: str, config: "PGPSConfig") -> int:
+    """The episodes of one generation of `algo` whose transitions enter the replay buffer:
+    PGPS's population (with the TD3 actor's extra episode where it has one), CEM-RL's
+    population, TD3 alone's exploring episodes; CEM alone keeps none."""
+    algorithm_preset(algo)
+    return {"pgps": config.pop_size + int(config.td3_probe), "cemrl": config.pop_size,
+            "td3": config.exploring_episodes, "cem": 0}[algo]
+
+
 def check_for_algorithm(algo: str, config: "PGPSConfig") -> None:
     """Raises ValueError naming a field whose value `algo` cannot run with (CEM alone has no
-    replay buffer to warm up)."""
+    replay buffer to warm up; a buffer holds at least one generation's transitions)."""
     algorithm_preset(algo)
     if algo == "cem" and config.warmup_steps:
         raise ValueError(f"CEM alone has no replay buffer to warm up: warmup_steps must be 0, "
                          f"got {config.warmup_steps}")
+    episodes = recorded_episodes(algo, config)
+    _require(episodes * config.t_max <= config.buffer_size, "buffer_size", config.buffer_size,
+             f">= {episodes} episodes × t_max = {episodes * config.t_max} (one generation's "
+             f"transitions for {algo})")
 
 
 def algorithm_preset(algo: str) -> dict:
@@ -364,12 +377,10 @@ def _validate(c: PGPSConfig) -> None:
     _require(c.num_candidates >= c.num_elite_filtered, "sample_ratio", c.sample_ratio,
              f"large enough that SR·N = {c.num_candidates} candidates >= the "
              f"{c.num_elite_filtered} population slots Q-filtering fills")
-    _require(c.warmup_steps <= c.buffer_size, "warmup_steps", c.warmup_steps,
-             f"<= buffer_size={c.buffer_size}")
-    episodes = c.pop_size + int(c.td3_probe)
-    _require(episodes * c.t_max <= c.buffer_size, "buffer_size", c.buffer_size,
-             f">= {episodes} episodes × t_max = {episodes * c.t_max} (one generation's "
-             "transitions)")
+    warmup_rows = -(-c.warmup_steps // c.pop_size) * c.pop_size
+    _require(warmup_rows <= c.buffer_size, "warmup_steps", c.warmup_steps,
+             f"at most buffer_size={c.buffer_size} once rounded up to a multiple of "
+             f"pop_size={c.pop_size} (the warm-up's envs side by side): {warmup_rows} rows")
     for name in ("actor_hidden", "critic_hidden"):
         widths = getattr(c, name)
         _require(len(widths) > 0 and all(w > 0 for w in widths), name, widths,

@@ -4,6 +4,7 @@ run, or the resumption of one (`plan`)."""
 import copy
 import dataclasses
 import sys
+from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence
 
 from pgps_jax.agent.config import VALUES_BEFORE_ADDED, PGPSConfig, effective_fields
@@ -37,16 +38,26 @@ def _set(values: dict, dotted: str, value: Any) -> None:
     node[last] = value
 
 
-def _checkpointed_config(directory: rundir.RunDir) -> tuple[int, dict]:
-    """(newest readable checkpoint's generation, the resolved configuration saved with it);
-    checkpoints whose metadata cannot be read are set aside."""
+def _checkpointed(directory: rundir.RunDir) -> tuple[int, dict]:
+    """(newest readable checkpoint's generation, its metadata: the resolved configuration
+    saved with it, the env steps taken); checkpoints whose metadata cannot be read are set
+    aside."""
     from pgps_jax.cli.checkpoint import Checkpoints
     checkpoints = Checkpoints(directory.checkpoints)
     try:
-        step, meta = checkpoints.latest_meta()
-        return step, meta["config"]
+        return checkpoints.latest_meta()
     finally:
         checkpoints.close()
+
+
+def _require_budget_not_below(run: RunSettings, saved: dict, taken: int, step: int) -> None:
+    """A resumed run's total_steps may not fall below the env steps its checkpoint has
+    taken, unless it is the budget the run already reached (resuming a finished run)."""
+    if run.total_steps < taken and run.total_steps != saved.get("total_steps"):
+        raise UsageError(
+            f"total_steps={run.total_steps} is below the {taken:,} env steps that the "
+            f"checkpoint (generation {step}) has taken; a run cannot be shortened. Give "
+            f"total_steps >= {taken} to continue it.")
 
 
 def _with_new_fields(saved: dict) -> dict:
@@ -119,6 +130,7 @@ def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
         directory = rundir.RunDir(resume)
         if not directory.path.is_dir():
             raise UsageError(f"resume={resume}: no such run directory")
+        _require_no_other_directory(resume, values, overrides)
     else:
         run, config = from_dict(values)
         if run.resume is False:
@@ -131,6 +143,20 @@ def plan(values: Mapping[str, Any], overrides: Sequence[str] = ()) -> Plan:
     except BaseException:
         lock.release()
         raise
+
+
+def _require_no_other_directory(resume: str, values: Mapping[str, Any],
+                                overrides: Sequence[str]) -> None:
+    """resume=<dir> continues the run in <dir>: a run_dir naming another directory, or an
+    output_dir (where new runs go), given beside it is refused rather than ignored."""
+    keys = override_keys(overrides)
+    other = ("output_dir" if "output_dir" in keys else
+             "run_dir" if "run_dir" in keys
+             and Path(values["run_dir"]).resolve() != Path(resume).resolve() else None)
+    if other is not None:
+        raise UsageError(f"resume={resume} continues the run in that directory; {other}="
+                         f"{values[other]} beside it would be ignored. Give resume=<dir> "
+                         f"alone, or resume=true with run_dir=<dir>.")
 
 
 def _plan_new(run: RunSettings, config: PGPSConfig, values: dict) -> Plan:
@@ -164,8 +190,8 @@ def _plan_resume(run: Optional[RunSettings], config: Optional[PGPSConfig], value
         run = _recording_physics(run, values)
         return Plan(run, config, values, directory, lock, None)
 
-    step, saved = _checkpointed_config(directory)
-    saved = _with_new_fields(saved)
+    step, meta = _checkpointed(directory)
+    saved = _with_new_fields(meta["config"])
     effective = values
     if by_path:
         explicit = [k for k in override_keys(overrides) if k not in ("resume", "run_dir")]
@@ -185,5 +211,6 @@ def _plan_resume(run: Optional[RunSettings], config: Optional[PGPSConfig], value
             + "\nResume with the checkpoint's settings, or start a new run in another run_dir.")
     run, config = from_dict(effective)
     require_training(run, config)
+    _require_budget_not_below(run, saved, meta["total_steps"], step)
     run = dataclasses.replace(run, run_dir=str(directory.path))
     return Plan(run, config, effective, directory, lock, step)
