@@ -201,6 +201,7 @@ def test_load_theta_rejects_a_wrong_shape(tmp_path):
     (["sweep.points=many"], ["sweep.points must be an integer, got 'many'"]),
     (["foo=1"], ["unknown setting 'foo'", "sweep.points"]),
     (["cem.top_k=9", "cem.pop_size=4"], ["cem.top_k=9 is invalid"]),
+    (["params_file=missing.npz"], ["params_file=missing.npz: no such file"]),
 ])
 def test_cli_bad_input_is_one_message_and_status_2(tmp_path, args, words):
     result = run_here("landscape", args + [f"output_dir={tmp_path / 'out'}"], tmp_path)

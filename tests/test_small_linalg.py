@@ -13,6 +13,7 @@ import pytest
 
 from pgps_jax.envs import make_env, physics
 from pgps_jax.envs.mjx_rewrites import small_linalg
+from pgps_jax.envs.mjx_rewrites.rewrite import rewrite
 
 RNG = np.random.default_rng(0)
 
@@ -86,7 +87,7 @@ def test_written_out_function_has_no_small_linalg_primitives():
 
     a, b = jnp.asarray(_spd(4)), jnp.asarray(RNG.normal(size=(5, 4)), jnp.float32)
     batched = jax.vmap(in_a_loop)
-    written = jax.vmap(small_linalg.write_out_small_linalg(in_a_loop))
+    written = jax.vmap(rewrite(in_a_loop, [small_linalg.SMALL_LINALG]))
     assert {"cholesky", "triangular_solve"} <= _primitives(jax.make_jaxpr(batched)(a, b))
     assert not {"cholesky", "triangular_solve"} & _primitives(jax.make_jaxpr(written)(a, b))
     np.testing.assert_allclose(written(a, b), batched(a, b), rtol=1e-4, atol=1e-5)
@@ -94,7 +95,7 @@ def test_written_out_function_has_no_small_linalg_primitives():
 
 def test_large_matrices_keep_the_library_calls():
     n = small_linalg.MAX_SIZE + 1
-    written = small_linalg.write_out_small_linalg(jnp.linalg.cholesky)
+    written = rewrite(jnp.linalg.cholesky, [small_linalg.SMALL_LINALG])
     with pytest.warns(RuntimeWarning, match="'small_linalg' found nothing to rewrite"):
         jaxpr = jax.make_jaxpr(written)(jnp.asarray(_spd(n)[0]))
     assert "cholesky" in _primitives(jaxpr)

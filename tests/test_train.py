@@ -131,9 +131,10 @@ def test_evaluate_reproduces_the_last_evaluation(reference, cache, tmp_path):
 
 @pytest.mark.parametrize("args, words", [
     (["out=missing/re.csv"], ["out=missing/re.csv: cannot write there", "No such file"]),
-    (["steps=0"], ["steps must be >= 1"]),
+    (["steps=0"], ["steps=0 is invalid: must be an integer >= 1"]),
     (["out="], ["out=: name a file to write, not a folder"]),
-    (["episodes=0"], ["episodes must be >= 1"]),
+    (["episodes=0"], ["episodes=0 is invalid: must be an integer >= 1"]),
+    (["seed=-5"], ["seed=-5 is invalid: must be an integer >= 0"]),
     (["length=5"], ["unknown argument 'length=5'", "steps=..."]),
 ])
 def test_evaluate_refuses_bad_arguments_before_playing(reference, tmp_path, args, words):
@@ -143,6 +144,22 @@ def test_evaluate_refuses_bad_arguments_before_playing(reference, tmp_path, args
     for word in words:
         assert word in result.stderr
     assert result.stdout == "" and "Traceback" not in result.stderr  # nothing was played
+
+
+@pytest.mark.parametrize("text, words", [
+    ("env: [point\n", ["is not valid YAML"]),
+    ("", ["holds no settings"]),
+])
+def test_evaluate_names_a_damaged_config_file(reference, tmp_path, text, words):
+    run_dir, _ = reference
+    copy = tmp_path / "damaged"
+    shutil.copytree(run_dir, copy)
+    (copy / rundir.CONFIG).write_text(text)
+    result = run_here("evaluate", [f"run={copy}"], tmp_path)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert str(copy / rundir.CONFIG) in result.stderr
+    for word in words:
+        assert word in result.stderr
 
 
 def test_evaluate_plays_episodes_of_the_steps_asked_for(reference, tmp_path):

@@ -57,9 +57,9 @@ def _evaluate(argv: Sequence[str]) -> int:
     args = parse_args(argv, {"run": str, "episodes": int, "steps": int, "seed": int,
                              "out": str}, __doc__, required=("run",))
     settings, config, saved = load_run(args["run"])
-    for name in ("episodes", "steps"):
-        if args.get(name, 1) < 1:
-            raise UsageError(f"{name} must be >= 1")
+    for name, low in (("episodes", 1), ("steps", 1), ("seed", 0)):
+        if args.get(name, low) < low:
+            raise UsageError(f"{name}={args[name]} is invalid: must be an integer >= {low}")
     out = require_writable(args["out"]) if "out" in args else None
     import jax  # only once the arguments are known to be good
 

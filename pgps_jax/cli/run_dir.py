@@ -287,8 +287,14 @@ class RunDir:
         path = self.path / CONFIG
         if not path.exists():
             raise UsageError(f"{self.path} is not a run directory: it has no {CONFIG}")
-        with open(path) as f:
-            return yaml.safe_load(f)
+        try:
+            with open(path) as f:
+                config = yaml.safe_load(f)
+        except yaml.YAMLError as e:
+            raise UsageError(f"{path} cannot be read: it is not valid YAML ({e})") from None
+        if not isinstance(config, dict):
+            raise UsageError(f"{path} cannot be read: it holds no settings")
+        return config
 
 
 def save_actors(path: pathlib.Path, generation: int, env_steps: int,

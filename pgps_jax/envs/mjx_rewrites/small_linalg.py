@@ -6,9 +6,9 @@ and cuBLAS calls: each launches its own kernels, with pointer-array setup, outsi
 code. Written out entry by entry, the same arithmetic is a few element-wise kernels over the
 batch that XLA fuses with its neighbours.
 
-`write_out_small_linalg(fn)` traces `fn` and replaces each Cholesky and triangular-solve
-primitive on matrices up to `MAX_SIZE` rows, in `fn` and in the loops and jitted functions it
-calls, by these versions (`rewrite`); everything else is bound as traced.
+`SMALL_LINALG`, a rule of `rewrite`, replaces each Cholesky and triangular-solve primitive
+on matrices up to `MAX_SIZE` rows, in the traced function and in the loops and jitted
+functions it calls, by these versions; everything else is bound as traced.
 """
 
 import jax
@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jax.lax import linalg
 import numpy as np
 
-from pgps_jax.envs.mjx_rewrites.rewrite import Rule, rewrite
+from pgps_jax.envs.mjx_rewrites.rewrite import Rule
 
 MAX_SIZE = 10
 """Largest matrix written out. On an H200 (BENCHMARKS.md, "Small factorisations") the
@@ -91,11 +91,3 @@ SMALL_LINALG = Rule(name="small_linalg", applies=_is_small,
                     compute=lambda eqn, inputs, params: [
                         _WRITTEN_OUT[eqn.primitive](*inputs, **eqn.params)])
 """Cholesky and triangular-solve calls on matrices up to `MAX_SIZE` rows, written out."""
-
-
-def write_out_small_linalg(fn):
-    """`fn` (arrays -> arrays) with its small Cholesky factorisations and solves written out.
-
-    Non-array inputs must be closed over (MJX's model, whose numpy fields drive tracing).
-    """
-    return rewrite(fn, [SMALL_LINALG])

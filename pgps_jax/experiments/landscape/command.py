@@ -151,6 +151,7 @@ def _main(cfg) -> None:
     from pgps_jax.envs import make_env
 
     def body() -> int:
+        logging.getLogger("jax").setLevel(logging.WARNING)  # Hydra logs INFO: not JAX's
         plain = OmegaConf.to_container(cfg, resolve=True)
         train, sweep = configs_from_dict(plain)
         name = HydraConfig.get().runtime.choices["env"]
@@ -158,6 +159,8 @@ def _main(cfg) -> None:
         params_file = plain.get("params_file")
         if params_file:
             params_file = hydra.utils.to_absolute_path(params_file)
+            if not pathlib.Path(params_file).is_file():
+                raise UsageError(f"params_file={plain['params_file']}: no such file")
         run(make_env(name), name, train, sweep, out_dir,
             jax.random.PRNGKey(coerce("seed", plain["seed"], int)),
             params=plain.get("sweep", {}).get("params"), params_file=params_file,
