@@ -47,6 +47,33 @@ def test_round_trip_is_exact_and_keeps_the_last_n(setup, tmp_path):
     checkpoints.close()
 
 
+def test_a_template_of_the_other_key_kind_is_named_as_such(setup, tmp_path):
+    """A state started from raw keys restored into a template of typed keys (and the other
+    way round) is refused with the keys named, not as another configuration."""
+    agent, state, abstract = setup
+    typed = jax.jit(agent.init)(jax.random.key(0))
+    typed_abstract = jax.eval_shape(agent.init, jax.random.key(0))
+    for saved, template, kinds in ((state, typed_abstract, "raw PRNG keys where the "
+                                    "template has typed ones"),
+                                   (typed, abstract, "typed PRNG keys where the template "
+                                    "has raw ones")):
+        checkpoints = Checkpoints(tmp_path / kinds.split()[0], keep=1)
+        checkpoints.save(1, saved, {"generation": 1})
+        with pytest.raises(UsageError, match=f"the checkpoint holds {kinds}") as err:
+            checkpoints.restore(1, template)
+        assert "jax.random.key(seed)" in str(err.value)
+        assert "another configuration" not in str(err.value)
+        checkpoints.close()
+    with pytest.raises(UsageError, match="another configuration or version"):
+        checkpoints = Checkpoints(tmp_path / "raw", keep=1)
+        try:
+            checkpoints.restore(1, jax.eval_shape(
+                PGPS(TINY.replace(pop_size=6, top_k=3), make_env("point"),
+                     EvaluationConfig(steps=10)).init, jax.random.PRNGKey(0)))
+        finally:
+            checkpoints.close()
+
+
 def test_a_half_written_checkpoint_is_ignored_and_removed(setup, tmp_path):
     _, state, abstract = setup
     directory = tmp_path / "ckpt"

@@ -38,6 +38,8 @@ def test_unknown_task_lists_choices():
     assert "humanoid" in str(err.value)
     for name in TASK_NAMES:
         assert name in str(err.value)
+    with pytest.raises(ValueError, match=r"unknown task 'point'.*configs/env/point\.yaml"):
+        for_task("point")
 
 
 @pytest.mark.parametrize("changes, field, hint", [

@@ -217,7 +217,9 @@ def for_task(task: str, algo: str = "pgps", **overrides) -> PGPSConfig:
     """The configuration of `algo` on `task`, with `overrides` applied: for PGPS the paper's
     (Tables 3 and 4); for a baseline its published hyper-parameters on top of those."""
     if task not in _TASK_PRESETS:
-        raise ValueError(f"unknown task {task!r}; valid tasks: {', '.join(TASK_NAMES)}")
+        hint = (" (the point mass, a smoke test, has no paper configuration: give PGPSConfig "
+                "the sizes of configs/env/point.yaml)" if task == "point" else "")
+        raise ValueError(f"unknown task {task!r}; valid tasks: {', '.join(TASK_NAMES)}{hint}")
     return PGPSConfig(**{**_TASK_PRESETS[task], **algorithm_preset(algo), **overrides})
 
 

@@ -166,8 +166,7 @@ class Checkpoints:
         saved = meta["layout"]
         if [{k: e[k] for k in ("path", "shape", "dtype")} for e in saved] != expected:
             raise UsageError(f"checkpoint {self.directory / str(step)} holds a state of another "
-                             f"layout than this run's ({_first_difference(saved, expected)}); "
-                             "it was written by another configuration or version")
+                             f"layout than this run's: {_layout_mismatch(saved, expected)}")
         abstract_leaves, treedef = jax.tree.flatten(abstract_state)
         stored_shapes = [_stored_shape(e) for e in saved]
         wanted = {f"{i:05d}": np.empty(shape, dtype)
@@ -280,14 +279,29 @@ def _stored_shape(entry: dict) -> tuple[tuple, np.dtype]:
     return tuple(entry["shape"]), np.dtype(entry["dtype"])
 
 
-def _first_difference(saved: list[dict], expected: list[dict]) -> str:
+def _layout_mismatch(saved: list[dict], expected: list[dict]) -> str:
+    """The first leaf in which a checkpoint's layout differs from the expected one, and why."""
     if len(saved) != len(expected):
-        return f"{len(saved)} leaves, this run has {len(expected)}"
+        return (f"{len(saved)} leaves, this run has {len(expected)}; it was written by another "
+                "configuration or version")
     for s, e in zip(saved, expected):
         if s["path"] != e["path"] or s["shape"] != e["shape"] or s["dtype"] != e["dtype"]:
-            return (f"{s['path']} {s['dtype']}{s['shape']}, this run has "
-                    f"{e['path']} {e['dtype']}{e['shape']}")
+            found = (f"{s['path']} {s['dtype']}{s['shape']}, this run has "
+                     f"{e['path']} {e['dtype']}{e['shape']}")
+            if s["path"] == e["path"] and {_key_kind(s), _key_kind(e)} == {"typed", "raw"}:
+                return (f"{found}: the checkpoint holds {_key_kind(s)} PRNG keys where the "
+                        f"template has {_key_kind(e)} ones. Make the template with the keys the "
+                        "run was started with (jax.random.key(seed) for typed keys, "
+                        "jax.random.PRNGKey(seed) for raw ones)")
+            return f"{found}; it was written by another configuration or version"
     return "no difference"
+
+
+def _key_kind(entry: dict) -> str:
+    """"typed" for a typed PRNG key's layout entry, "raw" for a raw uint32[2] key's."""
+    if entry["dtype"].startswith("key<"):
+        return "typed"
+    return "raw" if entry["dtype"] == "uint32" and entry["shape"][-1:] == [2] else "other"
 
 
 def _first_line(error: BaseException) -> str:
