@@ -60,6 +60,13 @@ def test_unknown_task_lists_choices():
     (dict(beta_adapted="later"), "beta_adapted", "one of before_block, after_block"),
     (dict(pop_size=6, top_k=3, buffer_size=1000, warmup_steps=1000), "warmup_steps",
      "1002 rows"),
+    (dict(buffer_size=2**31), "buffer_size", "< 2**31"),
+    (dict(buffer_size=20_000, warmup_steps=1000, batch_size=50_000), "batch_size",
+     "<= buffer_size=20000"),
+    (dict(buffer_size=20_000, warmup_steps=1000, ss1_size=100_000), "ss1_size",
+     "<= buffer_size=20000"),
+    (dict(buffer_size=20_000, warmup_steps=1000, ss2_size=20_001), "ss2_size",
+     "<= buffer_size=20000"),
 ])
 def test_invalid_values_name_field_value_and_range(changes, field, hint):
     with pytest.raises(ValueError) as err:

@@ -375,3 +375,14 @@ def test_a_nan_loss_stops_the_run_and_keeps_the_last_good_checkpoint(
     assert rundir.load_actors(run_dir / rundir.ACTORS)["generation"] == 2
     _, metrics = read_csv(run_dir / rundir.METRICS)
     assert metrics[-1]["generation"] == "3" and metrics[-1]["critic_loss"] == "nan"
+
+
+def test_a_device_out_of_memory_is_one_line_naming_the_sizes(capsys):
+    """XLA's allocation failure is reported as a failed run, with the settings that size the
+    programs' memory, not as a traceback."""
+    from pgps_jax.cli.errors import report
+    assert report(lambda: jnp.zeros((2**40, 2**20)).block_until_ready()) == EXIT_FAILED
+    err = capsys.readouterr().err
+    assert err.startswith("error: the device ran out of memory (RESOURCE_EXHAUSTED")
+    assert "pgps.buffer_size" in err and "pgps.ss1_size" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1

@@ -379,6 +379,12 @@ def _validate(c: PGPSConfig) -> None:
     _require(c.num_candidates >= c.num_elite_filtered, "sample_ratio", c.sample_ratio,
              f"large enough that SR·N = {c.num_candidates} candidates >= the "
              f"{c.num_elite_filtered} population slots Q-filtering fills")
+    _require(c.buffer_size < 2**31, "buffer_size", c.buffer_size,
+             "< 2**31 (the buffer's rows are counted in int32)")
+    for name in ("batch_size", "ss1_size", "ss2_size"):  # samples of the buffer's rows
+        value = getattr(c, name)
+        _require(value <= c.buffer_size, name, value, f"<= buffer_size={c.buffer_size} (a "
+                 "sample of the buffer's rows)")
     warmup_rows = -(-c.warmup_steps // c.pop_size) * c.pop_size
     _require(warmup_rows <= c.buffer_size, "warmup_steps", c.warmup_steps,
              f"at most buffer_size={c.buffer_size} once rounded up to a multiple of "

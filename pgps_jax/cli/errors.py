@@ -2,8 +2,8 @@
 
 Every command (`train`, `evaluate`, `render`, `landscape`) runs its body through `report`,
 so a mistake in its input is one `error: ...` line on stderr and exit status 2, and a run
-that fails on its way (a non-finite metric, a file that cannot be written) is one line and
-exit status 1: never a traceback.
+that fails on its way (a non-finite metric, a file that cannot be written, a device out of
+memory) is one line and exit status 1: never a traceback.
 """
 
 import errno
@@ -65,3 +65,23 @@ def report(body: Callable[[], int]) -> int:
     except RunFailed as e:
         print_error(str(e))
         return EXIT_FAILED
+    except Exception as e:
+        if not is_out_of_memory(e):
+            raise
+        print_error(f"the device ran out of memory ({_first_line(e)}). The settings that "
+                    "size the programs' memory: pgps.buffer_size, pgps.batch_size, "
+                    "pgps.ss1_size, pgps.ss2_size, pgps.pop_size × pgps.sample_ratio (the "
+                    "candidates Q-filtering scores), the networks' widths and the seeds run "
+                    "at once; a run keeps its last checkpoint")
+        return EXIT_FAILED
+
+
+def is_out_of_memory(error: BaseException) -> bool:
+    """Whether `error` is XLA's report of an allocation the device could not make."""
+    return (type(error).__name__ in ("JaxRuntimeError", "XlaRuntimeError")
+            and "RESOURCE_EXHAUSTED" in str(error))
+
+
+def _first_line(error: BaseException) -> str:
+    lines = str(error).strip().splitlines()
+    return lines[0][:300] if lines else type(error).__name__
