@@ -130,7 +130,7 @@ def test_a_second_process_in_a_run_directory_is_refused(task_runs, cache, tmp_pa
                     tmp_path / "log")
     try:
         wait_until(lambda: data_rows(run_dir / rundir.METRICS) >= 1, process)
-        for extra in (["resume=true"], [f"run_dir={tmp_path / 'other'}", f"resume={run_dir}"]):
+        for extra in (["resume=true"], [f"resume={run_dir}"]):
             second = run_here("train", reduced("hopper", f"run_dir={run_dir}", *extra),
                               tmp_path)
             assert second.returncode == 2, second.stderr[-3000:]

@@ -91,7 +91,8 @@ def _checkpointed(monkeypatch, task, saved_physics):
     saved.pop("physics")
     if saved_physics is not None:
         saved["physics"] = saved_physics
-    monkeypatch.setattr(planning, "_checkpointed_config", lambda directory: (10, saved))
+    monkeypatch.setattr(planning, "_checkpointed",
+                        lambda directory: (10, {"config": saved, "total_steps": 0}))
     monkeypatch.setattr(planning.rundir.RunDir, "has_checkpoint", lambda self: True)
 
 
