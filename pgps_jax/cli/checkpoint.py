@@ -36,7 +36,7 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
-from pgps_jax.cli.errors import UsageError, WriteFailed
+from pgps_jax.cli.errors import UsageError, WriteFailed, first_line
 
 DAMAGED = "damaged_checkpoints"
 """Where damaged checkpoints are moved, beside `checkpoints/` in the run directory."""
@@ -148,7 +148,7 @@ class Checkpoints:
             restored = self._manager.restore(
                 step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))
         except (ValueError, OSError, KeyError) as e:
-            raise DamagedCheckpoint(f"its metadata cannot be read ({_first_line(e)})") from None
+            raise DamagedCheckpoint(f"its metadata cannot be read ({first_line(e)})") from None
         if not isinstance(restored.meta, dict) or "checksum" not in restored.meta:
             raise DamagedCheckpoint("its metadata is incomplete")
         return restored.meta
@@ -175,7 +175,7 @@ class Checkpoints:
             restored = self._manager.restore(step, args=ocp.args.Composite(
                 state=ocp.args.StandardRestore(wanted)))
         except (ValueError, OSError, KeyError) as e:
-            raise DamagedCheckpoint(f"its state cannot be read ({_first_line(e)})") from None
+            raise DamagedCheckpoint(f"its state cannot be read ({first_line(e)})") from None
         leaves = [np.asarray(restored.state[f"{i:05d}"]) if math.prod(shape)
                   else np.empty(shape, dtype) for i, (shape, dtype) in enumerate(stored_shapes)]
         if checksum(leaves) != meta["checksum"]:
@@ -302,8 +302,3 @@ def _key_kind(entry: dict) -> str:
     if entry["dtype"].startswith("key<"):
         return "typed"
     return "raw" if entry["dtype"] == "uint32" and entry["shape"][-1:] == [2] else "other"
-
-
-def _first_line(error: BaseException) -> str:
-    lines = str(error).strip().splitlines()
-    return lines[0][:300] if lines else type(error).__name__

@@ -68,7 +68,7 @@ def report(body: Callable[[], int]) -> int:
     except Exception as e:
         if not is_out_of_memory(e):
             raise
-        print_error(f"the device ran out of memory ({_first_line(e)}). The settings that "
+        print_error(f"the device ran out of memory ({first_line(e)}). The settings that "
                     "size the programs' memory: pgps.buffer_size, pgps.batch_size, "
                     "pgps.ss1_size, pgps.ss2_size, pgps.pop_size × pgps.sample_ratio (the "
                     "candidates Q-filtering scores), the networks' widths and the seeds run "
@@ -82,6 +82,7 @@ def is_out_of_memory(error: BaseException) -> bool:
             and "RESOURCE_EXHAUSTED" in str(error))
 
 
-def _first_line(error: BaseException) -> str:
+def first_line(error: BaseException) -> str:
+    """An error's first line (at most 300 characters), or its type's name if it has none."""
     lines = str(error).strip().splitlines()
     return lines[0][:300] if lines else type(error).__name__
