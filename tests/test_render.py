@@ -101,6 +101,7 @@ def test_render_without_opengl_names_what_to_install(task_runs, cache, tmp_path)
     (["policy=best"], ["policy='best'", "mu, td3, elite"]),
     (["out=episode.avi"], [".mp4 or .gif"]),
     (["colour=red"], ["unknown argument 'colour=red'"]),
+    (["steps=0"], ["steps=0 is invalid: must be an integer >= 1"]),
     (["out=missing/episode.gif"], ["out=missing/episode.gif: cannot write there",
                                    "No such file"]),
 ])

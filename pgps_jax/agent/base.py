@@ -142,7 +142,7 @@ class Agent:
         buffer = replay.init(config.buffer_size, env.observation_size, env.action_size)
         if config.warmup_steps == 0:
             return buffer, 0
-        steps_per_env = -(-config.warmup_steps // config.pop_size)
+        steps_per_env = config.warmup_steps_per_env
         transitions, valid = random_warmup(env, key, config.pop_size, steps_per_env,
                                            config.t_max)
         return replay.add(buffer, transitions, valid), steps_per_env * config.pop_size

@@ -166,6 +166,12 @@ class PGPSConfig:
         return self.q_filter and not self.resample_before_q_filter
 
     @property
+    def warmup_steps_per_env(self) -> int:
+        """Steps of each of the warm-up's `pop_size` envs side by side: ⌈warmup_steps / N⌉
+        (the warm-up writes N times as many rows)."""
+        return -(-self.warmup_steps // self.pop_size)
+
+    @property
     def num_candidates(self) -> int:
         """M = ⌊SR·N⌋ candidates scored by the critic (Algorithm 2)."""
         return int(self.sample_ratio * self.pop_size)
@@ -385,7 +391,7 @@ def _validate(c: PGPSConfig) -> None:
         value = getattr(c, name)
         _require(value <= c.buffer_size, name, value, f"<= buffer_size={c.buffer_size} (a "
                  "sample of the buffer's rows)")
-    warmup_rows = -(-c.warmup_steps // c.pop_size) * c.pop_size
+    warmup_rows = c.warmup_steps_per_env * c.pop_size
     _require(warmup_rows <= c.buffer_size, "warmup_steps", c.warmup_steps,
              f"at most buffer_size={c.buffer_size} once rounded up to a multiple of "
              f"pop_size={c.pop_size} (the warm-up's envs side by side): {warmup_rows} rows")

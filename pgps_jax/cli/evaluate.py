@@ -24,7 +24,7 @@ import numpy as np
 
 from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
 from pgps_jax.cli import run_dir as rundir
-from pgps_jax.cli.errors import EXIT_OK, UsageError, report
+from pgps_jax.cli.errors import EXIT_OK, report
 from pgps_jax.cli.tool_args import load_run, parse_args, require_writable
 
 if TYPE_CHECKING:
@@ -55,11 +55,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
 def _evaluate(argv: Sequence[str]) -> int:
     args = parse_args(argv, {"run": str, "episodes": int, "steps": int, "seed": int,
-                             "out": str}, __doc__, required=("run",))
+                             "out": str}, __doc__, required=("run",),
+                      at_least={"episodes": 1, "steps": 1, "seed": 0})
     settings, config, saved = load_run(args["run"])
-    for name, low in (("episodes", 1), ("steps", 1), ("seed", 0)):
-        if args.get(name, low) < low:
-            raise UsageError(f"{name}={args[name]} is invalid: must be an integer >= {low}")
     out = require_writable(args["out"]) if "out" in args else None
     import jax  # only once the arguments are known to be good
 

@@ -150,13 +150,15 @@ def _require_no_other_directory(resume: str, values: Mapping[str, Any],
     """resume=<dir> continues the run in <dir>: a run_dir naming another directory, or an
     output_dir (where new runs go), given beside it is refused rather than ignored."""
     keys = override_keys(overrides)
-    other = ("output_dir" if "output_dir" in keys else
-             "run_dir" if "run_dir" in keys
-             and Path(values["run_dir"]).resolve() != Path(resume).resolve() else None)
-    if other is not None:
-        raise UsageError(f"resume={resume} continues the run in that directory; {other}="
-                         f"{values[other]} beside it would be ignored. Give resume=<dir> "
-                         f"alone, or resume=true with run_dir=<dir>.")
+    if "output_dir" in keys:
+        other = "output_dir"
+    elif "run_dir" in keys and Path(values["run_dir"]).resolve() != Path(resume).resolve():
+        other = "run_dir"
+    else:
+        return
+    raise UsageError(f"resume={resume} continues the run in that directory; {other}="
+                     f"{values[other]} beside it would be ignored. Give resume=<dir> alone, "
+                     f"or resume=true with run_dir=<dir>.")
 
 
 def _plan_new(run: RunSettings, config: PGPSConfig, values: dict) -> Plan:

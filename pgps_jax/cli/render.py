@@ -122,7 +122,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 def _render(argv: Sequence[str]) -> int:
     args = parse_args(argv, {"run": str, "out": str, "policy": str, "steps": int,
                              "width": int, "height": int, "camera": str, "max_fps": float},
-                      __doc__, required=("run",))
+                      __doc__, required=("run",), at_least={"steps": 1})
     settings, config, saved = load_run(args["run"])
     saved_actors = [k for k in saved if k not in ("generation", "env_steps")]
     policy = args.get("policy", saved_actors[0])
@@ -130,8 +130,6 @@ def _render(argv: Sequence[str]) -> int:
         raise UsageError(f"policy={policy!r}: the run saved {', '.join(saved_actors)}; "
                          "choose one of them")
     steps = args.get("steps", settings.eval_steps)
-    if steps < 1:
-        raise UsageError("steps must be >= 1")
     default_suffix = ".mp4" if importlib.util.find_spec("imageio_ffmpeg") else ".gif"
     out = pathlib.Path(args.get("out", pathlib.Path(args["run"]) / f"episode{default_suffix}"))
     if out.suffix.lower() not in (".mp4", ".gif"):

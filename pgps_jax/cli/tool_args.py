@@ -13,9 +13,10 @@ from pgps_jax.cli.run_config import RunSettings, from_dict
 
 
 def parse_args(argv: Sequence[str], types: Mapping[str, Callable], usage: str,
-               required: Sequence[str] = ()) -> dict:
-    """`key=value` arguments -> {key: types[key](value)}; UsageError naming a bad one.
-    `-h` or `--help` prints `usage` (the command's docstring) and exits."""
+               required: Sequence[str] = (), at_least: Mapping[str, int] = {}) -> dict:
+    """`key=value` arguments -> {key: types[key](value)}; UsageError naming a bad one, or one
+    below its bound in `at_least`. `-h` or `--help` prints `usage` (the command's docstring)
+    and exits."""
     if "-h" in argv or "--help" in argv:
         print((usage or "").strip())  # no docstrings under python -OO
         sys.exit(EXIT_OK)
@@ -33,6 +34,9 @@ def parse_args(argv: Sequence[str], types: Mapping[str, Callable], usage: str,
         if key not in values:
             raise UsageError(f"missing argument {key}=...; valid: "
                              + " ".join(f"{k}=..." for k in types))
+    for key, low in at_least.items():
+        if key in values and values[key] < low:
+            raise UsageError(f"{key}={values[key]} is invalid: must be an integer >= {low}")
     return values
 
 
