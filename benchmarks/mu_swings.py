@@ -29,7 +29,7 @@ from typing import Optional
 
 import numpy as np
 
-from pgps_jax.experiments.paper.report import read_curve
+from pgps_jax.experiments.paper.report import read_curve, seeds_in
 from pgps_jax.experiments.paper.runner import generations_file, seed_file
 
 OUT = pathlib.Path("benchmarks/results/mu_swings.json")
@@ -38,15 +38,10 @@ EXACT_SPLITS = 1_000_000
 """The most splits of the pooled seeds the Mann–Whitney test enumerates."""
 
 
-def seeds_of(cell: pathlib.Path) -> list[int]:
-    """The seeds whose μ curve the cell holds, in order."""
-    return sorted(int(p.stem[4:]) for p in cell.glob("seed*.csv") if p.stem[4:].isdigit())
-
-
 def late_evaluations(cell: pathlib.Path, start: float) -> dict[int, dict[str, float]]:
     """Per seed, the mean and the lowest of μ's evaluations at env steps ≥ `start`."""
     late = {}
-    for seed in seeds_of(cell):
+    for seed in seeds_in(cell):
         steps, returns = read_curve(cell / seed_file(seed))
         chosen = returns[steps >= start]
         if chosen.size:
@@ -102,7 +97,7 @@ def rank_effect(cell: pathlib.Path, top_k: int, after: float, fall: float) -> di
     which it fell by more than `fall`; the generations (`generation_var_ratios`) and their
     median ratio of Σ's mean to the generation before's."""
     changes, ratios = [], []
-    for seed in seeds_of(cell):
+    for seed in seeds_in(cell):
         with open(cell / generations_file(seed), newline="") as f:
             generations = list(csv.DictReader(f))
         changes += interval_changes(generations, *read_curve(cell / seed_file(seed)),
@@ -172,7 +167,7 @@ def measure(cell: pathlib.Path, against: Optional[pathlib.Path], late_from: floa
         other = against / cell.parent.name / cell.name
         if other.resolve() == cell.resolve():
             return entry
-        top_k_of(other)  # a finished cell's folder
+        top_k_of(other)  # the checks the cell passed: a finished PGPS cell
         other_late = late_evaluations(other, late_from)
         if not late or not other_late:
             raise ValueError(f"{cell if not late else other} has no evaluation from "

@@ -120,13 +120,18 @@ def sample_std(values: np.ndarray, axis: int = 0) -> np.ndarray:
     return values.std(axis=axis, ddof=1) if values.shape[axis] > 1 else values.std(axis=axis)
 
 
+def seeds_in(directory: pathlib.Path) -> list[int]:
+    """The seeds whose reported actor's curve (`seed<k>.csv`) a cell's folder holds, in
+    order."""
+    return sorted(int(p.stem[4:]) for p in directory.glob("seed*.csv") if p.stem[4:].isdigit())
+
+
 def _seed_files(directory: pathlib.Path, actor: Optional[str],
                 of: Optional[list[int]] = None) -> list[pathlib.Path]:
     """The curves of `actor` (None: the reported actor) in a cell's folder, in the order of
     their seeds (those of `of` alone, where given)."""
     actor = actor or ""
-    seeds = sorted(int(p.stem[4:]) for p in directory.glob("seed*.csv") if p.stem[4:].isdigit())
-    return [directory / seed_file(seed, actor) for seed in seeds
+    return [directory / seed_file(seed, actor) for seed in seeds_in(directory)
             if (of is None or seed in of) and (directory / seed_file(seed, actor)).exists()]
 
 
