@@ -10,7 +10,7 @@ the CLI's loop (`pgps_jax.cli.loop`, the seeds vmapped), and writes a JSON with
   return, the TD3 actor's return, whether the guided loss trained it, β and the CEM variance.
 
     python -m benchmarks.learning --task ant --steps 500000 --env start_pose=qpos0 \
-        --set fell_behind_rule=mean --out benchmarks/results/learning_ant_qpos0_mean.json
+        --set fell_behind_rule=mean_minus_std --out benchmarks/results/learning_ant_text.json
 """
 
 import argparse

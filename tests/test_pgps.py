@@ -49,8 +49,8 @@ def test_episode_limit_fixed_without_increasing_steps():
 
 def test_fell_behind_is_below_mean_minus_std():
     returns = jnp.array([10.0, 20.0, 30.0, 40.0])        # mean 25, std ≈ 11.18
-    assert bool(pgps.fell_behind(jnp.asarray(13.0), returns))
-    assert not bool(pgps.fell_behind(jnp.asarray(14.0), returns))
+    assert bool(pgps.fell_behind(jnp.asarray(13.0), returns, "mean_minus_std"))
+    assert not bool(pgps.fell_behind(jnp.asarray(14.0), returns, "mean_minus_std"))
 
 
 @pytest.mark.parametrize("rule", ["mean_minus_std", "mean"])
@@ -63,19 +63,22 @@ def test_fell_behind_rules_match_numpy(rule):
                     == bool(td3_return < threshold))
 
 
-def test_the_target_actor_starts_each_generation_at_the_elite_only_when_asked():
+@pytest.mark.parametrize("from_elite,ea_guides_pg", [(True, True), (False, True),
+                                                     (True, False)])
+def test_the_target_actor_starts_each_generation_at_the_elite_only_when_asked(from_elite,
+                                                                              ea_guides_pg):
     """With τ tiny, the target actor after a generation's updates is where they began: the new
-    elite with `target_actor_from_elite`, else the old target."""
-    for from_elite in (True, False):
-        config = SMALL.replace(tau=1e-7, target_actor_from_elite=from_elite)
-        _, init, step = programs(config, donate=False)
-        state = init(jax.random.PRNGKey(1))  # a sample beats the elite
-        target_before = np.asarray(flatten(state.td3.actor_target))
-        new, _ = step(state)
-        target_after = np.asarray(flatten(new.td3.actor_target))
-        start = np.asarray(new.cem.elite) if from_elite else target_before
-        assert not np.allclose(np.asarray(new.cem.elite), target_before, atol=1e-3)
-        np.testing.assert_allclose(target_after, start, atol=1e-4)
+    elite with `target_actor_from_elite` and EA→PG, else the old target."""
+    config = SMALL.replace(tau=1e-7, target_actor_from_elite=from_elite,
+                           ea_guides_pg=ea_guides_pg)
+    _, init, step = programs(config, donate=False)
+    state = init(jax.random.PRNGKey(1))  # a sample beats the elite
+    target_before = np.asarray(flatten(state.td3.actor_target))
+    new, _ = step(state)
+    target_after = np.asarray(flatten(new.td3.actor_target))
+    start = np.asarray(new.cem.elite) if from_elite and ea_guides_pg else target_before
+    assert not np.allclose(np.asarray(new.cem.elite), target_before, atol=1e-3)
+    np.testing.assert_allclose(target_after, start, atol=1e-4)
 
 
 def tree_equal(a, b):

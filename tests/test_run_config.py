@@ -196,16 +196,21 @@ def test_a_budget_within_the_warm_up_is_refused_before_anything_is_written(tmp_p
     assert not run_dir.exists()
 
 
-def test_a_checkpoint_from_before_the_kept_population_resumes_resampling():
-    """Runs saved before `resample_before_q_filter` existed sampled their population every
-    generation; resumed, they go on doing so, although the default now keeps it; a field
-    added with the behaviour from before it takes its default."""
+def test_a_checkpoint_from_before_the_authors_details_resumes_as_it_ran():
+    """Runs saved before `resample_before_q_filter`, `fell_behind_rule` and
+    `target_actor_from_elite` existed sampled their population every generation, guided the
+    TD3 actor below mean − std and kept its own target actor; resumed, they go on doing so,
+    although the defaults are now the authors' code's; a field added with the behaviour from
+    before it takes its default."""
     from pgps_jax.cli.plan import _with_new_fields
     completed = _with_new_fields({"algo": {"name": "pgps"}, "pgps": {"pop_size": 6}})["pgps"]
-    assert completed["resample_before_q_filter"] is True
-    assert PGPSConfig().resample_before_q_filter is False
+    before = dict(resample_before_q_filter=True, fell_behind_rule="mean_minus_std",
+                  target_actor_from_elite=False)
+    for name, value in before.items():
+        assert completed[name] == value
+        assert getattr(PGPSConfig(), name) != value
     assert completed["pop_size"] == 6
-    assert completed["fell_behind_rule"] == PGPSConfig().fell_behind_rule
+    assert completed["beta_adapted"] == PGPSConfig().beta_adapted
 
 
 def test_a_switch_without_effect_does_not_stop_a_checkpoint_from_resuming():

@@ -55,10 +55,11 @@ def episode_limit(total_steps: jax.Array, config: PGPSConfig,
     return limit if increasing is True else jnp.where(increasing, limit, config.t_max)
 
 
-def fell_behind(td3_return: jax.Array, population_returns: jax.Array,
-                rule: str = "mean_minus_std") -> jax.Array:
-    """The TD3 actor lags: Return_TD3 < mean − std of the generation's returns (Algorithm 1),
-    or < mean with rule="mean" (the authors' code)."""
+def fell_behind(td3_return: jax.Array, population_returns: jax.Array, rule: str
+                ) -> jax.Array:
+    """The TD3 actor lags (`FELL_BEHIND_RULES`): Return_TD3 < mean of the generation's
+    returns with rule="mean" (the authors' code), < mean − std with "mean_minus_std"
+    (Algorithm 1)."""
     threshold = jnp.mean(population_returns)
     if rule == "mean_minus_std":
         threshold = threshold - jnp.std(population_returns)
@@ -231,16 +232,20 @@ class PGPS(Agent):
                    ) -> tuple[replay.BufferState, TD3State, jax.Array, dict]:
         """Algorithm 1 lines 19 and 24-37: the buffer takes the episodes' transitions, then
         TD3 trains as many updates as the generation's env steps, on L^A toward `elite` (the
-        actor's parameters) where `guided` (eq. 2-3). Returns the buffer, the TD3 state, β
-        and the losses."""
+        actor's parameters) where `guided` (eq. 2-3), its target actor first set to `elite`
+        with EA→PG and `target_actor_from_elite`. Returns the buffer, the TD3 state, β and
+        the losses."""
         config = self.config
         buffer = replay.add(state.buffer, played.transitions, played.valid)
         lengths = played.episodes.lengths
         num_update = lengths.sum() // config.update_blocks
         max_update = lengths.shape[0] * config.t_max // config.update_blocks
         td3_state = state.td3
-        if config.target_actor_from_elite:
-            td3_state = td3_state.replace(actor_target=elite)
+        from_elite = config.target_actor_from_elite and self.switch(state, "ea_guides_pg")
+        if from_elite is not False:
+            target = jax.tree.map(lambda e, t: jnp.where(from_elite, e, t), elite,
+                                  td3_state.actor_target)
+            td3_state = td3_state.replace(actor_target=target)
         td3_state, beta, losses = self.td3.train(td3_state, buffer, played.train_key,
                                                  num_update, max_update, elite, guided,
                                                  state.beta)
