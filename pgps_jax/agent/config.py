@@ -293,13 +293,21 @@ class EvaluationConfig:
                                  "positive integer")
 
 
+INERT_WITHOUT = {
+    "q_filter": ("resample_before_q_filter",),
+    "ea_guides_pg": ("fell_behind_rule", "target_actor_from_elite", "beta_init", "beta_min",
+                     "beta_max", "d_target", "ss2_size", "beta_adapted"),
+    "increasing_steps": ("t_init", "t_interval", "t_increment"),
+}
+"""The settings that act only through a coupling, by the coupling's field."""
+
+
 def effective_fields(fields: dict) -> dict:
     """A PGPSConfig's fields (as `dataclasses.asdict` gives them) less those that cannot act
     under the others' values, so that two configurations running the same algorithm compare
-    equal: `resample_before_q_filter` without Q-filtering, `target_actor_from_elite` without
-    EA→PG."""
-    inert = {"q_filter": "resample_before_q_filter", "ea_guides_pg": "target_actor_from_elite"}
-    dropped = {field for switch, field in inert.items() if not fields.get(switch, True)}
+    equal: a coupling's settings (`INERT_WITHOUT`) where it is off."""
+    dropped = {name for switch, names in INERT_WITHOUT.items() if not fields.get(switch, True)
+               for name in names}
     return {name: value for name, value in fields.items() if name not in dropped}
 
 
