@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pgps_jax.agent import pgps
-from pgps_jax.agent.config import EvaluationConfig, PGPSConfig
+from pgps_jax.agent.config import INERT_WITHOUT, EvaluationConfig, PGPSConfig, effective_fields
 from pgps_jax.envs.point import PointMass
 from pgps_jax.agent.networks import flatten
 from pgps_jax.agent.pgps import PGPS
@@ -79,6 +79,29 @@ def test_the_target_actor_starts_each_generation_at_the_elite_only_when_asked(fr
     start = np.asarray(new.cem.elite) if from_elite and ea_guides_pg else target_before
     assert not np.allclose(np.asarray(new.cem.elite), target_before, atol=1e-3)
     np.testing.assert_allclose(target_after, start, atol=1e-4)
+
+
+# Other valid values of the settings `INERT_WITHOUT` names (SMALL's t_max is 20).
+_CHANGED = dict(resample_before_q_filter=True, fell_behind_rule="mean_minus_std",
+                target_actor_from_elite=False, beta_min=1e-2, beta_max=8.0, d_target=0.2,
+                ss2_size=8, beta_adapted="after_block", t_init=15, t_interval=40, t_increment=2)
+
+
+@pytest.mark.parametrize("switch", sorted(INERT_WITHOUT))
+def test_a_couplings_settings_act_only_where_it_is_on(switch):
+    """The settings `effective_fields` drops where a coupling is off leave three generations'
+    state as it was there, and change it where the coupling is on."""
+    changes = {name: _CHANGED[name] for name in INERT_WITHOUT[switch]}
+    states = {}
+    for on in (False, True):
+        config = SMALL.replace(**{switch: on})
+        states[on] = [run(c, seed=0, generations=3)[0]
+                      for c in (config, config.replace(**changes))]
+        fields = [effective_fields(dataclasses.asdict(c))
+                  for c in (config, config.replace(**changes))]
+        assert (fields[0] == fields[1]) == (not on)
+    assert tree_equal(*states[False])
+    assert not tree_equal(*states[True])
 
 
 def tree_equal(a, b):

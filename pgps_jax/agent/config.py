@@ -295,8 +295,8 @@ class EvaluationConfig:
 
 INERT_WITHOUT = {
     "q_filter": ("resample_before_q_filter",),
-    "ea_guides_pg": ("fell_behind_rule", "target_actor_from_elite", "beta_init", "beta_min",
-                     "beta_max", "d_target", "ss2_size", "beta_adapted"),
+    "ea_guides_pg": ("fell_behind_rule", "target_actor_from_elite", "beta_min", "beta_max",
+                     "d_target", "ss2_size", "beta_adapted"),
     "increasing_steps": ("t_init", "t_interval", "t_increment"),
 }
 """The settings that act only through a coupling, by the coupling's field."""
