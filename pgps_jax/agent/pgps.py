@@ -233,19 +233,16 @@ class PGPS(Agent):
         """Algorithm 1 lines 19 and 24-37: the buffer takes the episodes' transitions, then
         TD3 trains as many updates as the generation's env steps, on L^A toward `elite` (the
         actor's parameters) where `guided` (eq. 2-3), its target actor first set to `elite`
-        with EA→PG and `target_actor_from_elite`. Returns the buffer, the TD3 state, β and
-        the losses."""
+        with `target_actor_from_elite`. Returns the buffer, the TD3 state, β and the
+        losses."""
         config = self.config
         buffer = replay.add(state.buffer, played.transitions, played.valid)
         lengths = played.episodes.lengths
         num_update = lengths.sum() // config.update_blocks
         max_update = lengths.shape[0] * config.t_max // config.update_blocks
         td3_state = state.td3
-        from_elite = config.target_actor_from_elite and self.switch(state, "ea_guides_pg")
-        if from_elite is not False:
-            target = jax.tree.map(lambda e, t: jnp.where(from_elite, e, t), elite,
-                                  td3_state.actor_target)
-            td3_state = td3_state.replace(actor_target=target)
+        if config.target_actor_from_elite:
+            td3_state = td3_state.replace(actor_target=elite)
         td3_state, beta, losses = self.td3.train(td3_state, buffer, played.train_key,
                                                  num_update, max_update, elite, guided,
                                                  state.beta)
