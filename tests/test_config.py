@@ -20,6 +20,18 @@ def test_defaults_are_table_3():
     assert c.actor_hidden == c.critic_hidden == (400, 300)
 
 
+def test_where_the_paper_and_the_authors_code_differ_the_defaults_are_the_codes():
+    c = PGPSConfig()
+    assert (c.resample_before_q_filter, c.fell_behind_rule, c.target_actor_from_elite) == (
+        False, "mean", True)
+    swimmer = for_task("swimmer")
+    assert (swimmer.t_init, swimmer.d_target) == (500, 0.03)
+    for task in ("halfcheetah", "hopper", "walker2d", "ant"):
+        assert (for_task(task).t_init, for_task(task).d_target) == (400, 0.05)
+    for algo in ("cem", "td3", "cemrl"):
+        assert not for_task("hopper", algo).target_actor_from_elite
+
+
 @pytest.mark.parametrize("task, n, k, f, tau_sigma", [
     ("swimmer", 10, 5, 3, 0.01), ("halfcheetah", 10, 5, 1, 0.03), ("hopper", 6, 3, 1, 0.03),
     ("walker2d", 6, 3, 1, 0.03), ("ant", 6, 3, 1, 0.03)])

@@ -229,7 +229,8 @@ _ALGORITHM_PRESETS = {
 
 def for_task(task: str, algo: str = "pgps", **overrides) -> PGPSConfig:
     """The configuration of `algo` on `task`, with `overrides` applied: for PGPS the paper's
-    (Tables 3 and 4); for a baseline its published hyper-parameters on top of those."""
+    (Tables 3 and 4, with the authors' code where `PGPSConfig` and `_TASK_PRESETS` say); for a
+    baseline its published hyper-parameters on top of those."""
     if task not in _TASK_PRESETS:
         hint = (" (the point mass, a smoke test, has no paper configuration: give PGPSConfig "
                 "the sizes of configs/env/point.yaml)" if task == "point" else "")
