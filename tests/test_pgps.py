@@ -96,10 +96,9 @@ def test_a_couplings_settings_act_only_where_it_is_on(switch):
     states = {}
     for on in (False, True):
         config = SMALL.replace(**{switch: on})
-        states[on] = [run(c, seed=0, generations=3)[0]
-                      for c in (config, config.replace(**changes))]
-        fields = [effective_fields(dataclasses.asdict(c))
-                  for c in (config, config.replace(**changes))]
+        pair = (config, config.replace(**changes))
+        states[on] = [run(c, seed=0, generations=3)[0] for c in pair]
+        fields = [effective_fields(dataclasses.asdict(c)) for c in pair]
         assert (fields[0] == fields[1]) == (not on)
     assert tree_equal(*states[False])
     assert not tree_equal(*states[True])
