@@ -29,6 +29,7 @@ from typing import Optional
 
 import numpy as np
 
+from pgps_jax.cli.run_dir import write_atomic
 from pgps_jax.experiments.paper.report import read_curve, seeds_in
 from pgps_jax.experiments.paper.runner import generations_file, seed_file
 
@@ -225,7 +226,7 @@ def main() -> None:
                    for cell in args.cells}
     except ValueError as error:
         parser.error(str(error))
-    args.out.write_text(json.dumps(results, indent=1) + "\n")
+    write_atomic(args.out, (json.dumps(results, indent=1) + "\n").encode())
     print(table(results))
     print(f"wrote {args.out}")
 
