@@ -22,8 +22,8 @@ def test_defaults_are_table_3():
 
 def test_where_the_paper_and_the_authors_code_differ_the_defaults_are_the_codes():
     c = PGPSConfig()
-    assert (c.resample_before_q_filter, c.fell_behind_rule, c.target_actor_from_elite) == (
-        False, "mean", True)
+    assert (c.resample_before_q_filter, c.beta_adapted, c.fell_behind_rule,
+            c.target_actor_from_elite) == (False, "after_block", "mean", True)
     swimmer = for_task("swimmer")
     assert (swimmer.t_init, swimmer.d_target) == (500, 0.03)
     for task in ("halfcheetah", "hopper", "walker2d", "ant"):

@@ -249,7 +249,7 @@ def test_a_checkpoint_from_before_a_new_setting_resumes_under_its_default(refere
     shutil.copytree(run_dir, older)
     for path in (older / rundir.CHECKPOINTS).glob("*/meta/metadata"):
         meta = json.loads(path.read_text())
-        del meta["config"]["pgps"]["beta_adapted"]
+        del meta["config"]["pgps"]["update_unroll"]
         path.write_text(json.dumps(meta))
     result = run_here("train", tiny(f"run_dir={older}", "resume=true"), tmp_path)
     assert result.returncode == 0, result.stderr[-2000:]
