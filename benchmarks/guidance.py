@@ -19,6 +19,7 @@ import pathlib
 
 import numpy as np
 
+from benchmarks.finished_cell import pgps_result
 from pgps_jax.cli.run_dir import write_atomic
 from pgps_jax.experiments.paper.report import read_curve, seeds_in
 from pgps_jax.experiments.paper.runner import generations_file, seed_file
@@ -28,19 +29,11 @@ PHASES = ("before_q_filter", "after_q_filter")
 
 
 def cell_config(cell: pathlib.Path) -> dict:
-    """The PGPSConfig the cell ran (its `result.json`), and μ's final return per seed;
-    ValueError for a folder that holds no finished cell, another algorithm's cell, or one
-    whose TD3 actor is never guided (EA→PG off)."""
-    path = cell / "result.json"
-    if not path.exists():
-        raise ValueError(f"{cell} holds no result.json: not a finished cell's folder")
-    result = json.loads(path.read_text())
-    if result["algo"] != "pgps":
-        raise ValueError(f"{cell}: a cell of {result['algo']}; only PGPS guides its TD3 actor")
-    config = result["settings"]["config"]
-    if not config["ea_guides_pg"]:
-        raise ValueError(f"{cell}: EA→PG is off (ea_guides_pg), so nothing guides the TD3 actor")
-    return {"config": config, "final": dict(zip(result["seeds"], result["final"]["mu"]))}
+    """The PGPSConfig the cell ran and μ's final return per seed
+    (`finished_cell.pgps_result`); ValueError for a cell whose TD3 actor is never guided."""
+    result = pgps_result(cell, "ea_guides_pg", "nothing guides the TD3 actor")
+    return {"config": result["settings"]["config"],
+            "final": dict(zip(result["seeds"], result["final"]["mu"]))}
 
 
 def phase_shares(generations: list[dict], beta_max: float, fallen: float) -> dict:

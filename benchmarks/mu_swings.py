@@ -29,6 +29,7 @@ from typing import Optional
 
 import numpy as np
 
+from benchmarks.finished_cell import pgps_result
 from pgps_jax.cli.run_dir import write_atomic
 from pgps_jax.experiments.paper.report import read_curve, seeds_in
 from pgps_jax.experiments.paper.runner import generations_file, seed_file
@@ -139,21 +140,12 @@ def mann_whitney_p(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def top_k_of(cell: pathlib.Path) -> int:
-    """K of the configuration the cell ran (its `result.json`); ValueError for another
-    algorithm's cell and for one whose TD3 actor plays outside the population (EA→PG without
-    PG→EA: its probe slot)."""
-    path = cell / "result.json"
-    if not path.exists():
-        raise ValueError(f"{cell} holds no result.json: not a finished cell's folder")
-    result = json.loads(path.read_text())
-    if result["algo"] != "pgps":
-        raise ValueError(f"{cell}: a cell of {result['algo']}; the TD3 actor ranks among the "
-                         "CEM's actors in PGPS's cells only")
-    config = result["settings"]["config"]
-    if not config["pg_guides_ea"]:
-        raise ValueError(f"{cell}: the TD3 actor does not join the population (pg_guides_ea "
-                         "is off), so its rank among the CEM's actors means nothing")
-    return int(config["top_k"])
+    """K of the configuration the cell ran (`finished_cell.pgps_result`); ValueError for a
+    cell whose TD3 actor plays outside the population (EA→PG without PG→EA: its probe
+    slot)."""
+    result = pgps_result(cell, "pg_guides_ea", "the TD3 actor does not join the population "
+                         "and its rank among the CEM's actors means nothing")
+    return int(result["settings"]["config"]["top_k"])
 
 
 def measure(cell: pathlib.Path, against: Optional[pathlib.Path], late_from: float,
