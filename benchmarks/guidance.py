@@ -14,13 +14,11 @@ Writes `benchmarks/results/guidance.json` (keyed by cell folder) and prints one 
 
 import argparse
 import csv
-import json
 import pathlib
 
 import numpy as np
 
-from benchmarks.finished_cell import pgps_result
-from pgps_jax.cli.run_dir import write_atomic
+from benchmarks.finished_cell import measure_cells, pgps_result
 from pgps_jax.experiments.paper.report import read_curve, seeds_in
 from pgps_jax.experiments.paper.runner import generations_file, seed_file
 
@@ -116,15 +114,9 @@ def main(argv=None) -> dict:
                         help="env steps near which μ's evaluation is reported")
     parser.add_argument("--out", type=pathlib.Path, default=OUT)
     args = parser.parse_args(argv)
-    try:
-        results = {str(cell): measure(cell, args.fallen, args.late_from, args.at)
-                   for cell in args.cells}
-    except ValueError as e:
-        parser.error(str(e))
-    write_atomic(args.out, (json.dumps(results, indent=1) + "\n").encode())
-    print(table(results))
-    print(f"wrote {args.out}")
-    return results
+    return measure_cells(parser, args.cells,
+                         lambda cell: measure(cell, args.fallen, args.late_from, args.at),
+                         table, args.out)
 
 
 if __name__ == "__main__":

@@ -22,15 +22,13 @@ Writes `benchmarks/results/mu_swings.json` (keyed by cell folder) and prints one
 import argparse
 import csv
 import itertools
-import json
 import math
 import pathlib
 from typing import Optional
 
 import numpy as np
 
-from benchmarks.finished_cell import pgps_result
-from pgps_jax.cli.run_dir import write_atomic
+from benchmarks.finished_cell import measure_cells, pgps_result
 from pgps_jax.experiments.paper.report import read_curve, seeds_in
 from pgps_jax.experiments.paper.runner import generations_file, seed_file
 
@@ -213,14 +211,9 @@ def main() -> None:
                         help="a change of μ's evaluation below minus this is a fall")
     parser.add_argument("--out", type=pathlib.Path, default=OUT)
     args = parser.parse_args()
-    try:
-        results = {str(cell): measure(cell, args.against, args.late_from, args.after, args.fall)
-                   for cell in args.cells}
-    except ValueError as error:
-        parser.error(str(error))
-    write_atomic(args.out, (json.dumps(results, indent=1) + "\n").encode())
-    print(table(results))
-    print(f"wrote {args.out}")
+    measure_cells(parser, args.cells,
+                  lambda cell: measure(cell, args.against, args.late_from, args.after, args.fall),
+                  table, args.out)
 
 
 if __name__ == "__main__":
