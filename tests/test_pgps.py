@@ -84,7 +84,7 @@ def test_the_target_actor_starts_each_generation_at_the_elite_only_when_asked(fr
 
 # Other valid values of the settings `INERT_WITHOUT` names (SMALL's t_max is 20).
 _CHANGED = dict(resample_before_q_filter=True, fell_behind_rule="mean_minus_std", beta_min=1e-2,
-                beta_max=8.0, d_target=0.2, ss2_size=8, beta_adapted="before_block", t_init=15,
+                beta_max=8.0, d_target=0.2, ss2_size=8, beta_adapted="after_block", t_init=15,
                 t_interval=40, t_increment=2)
 
 

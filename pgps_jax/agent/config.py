@@ -19,17 +19,17 @@ ALGORITHMS = ("pgps", "cem", "td3", "cemrl")
 """PGPS and the baselines built from its parts (`pgps_jax.agent.algorithms`)."""
 
 VALUES_BEFORE_ADDED = {"resample_before_q_filter": True, "fell_behind_rule": "mean_minus_std",
-                       "target_actor_from_elite": False, "beta_adapted": "before_block"}
+                       "target_actor_from_elite": False}
 """The values that runs saved before these PGPSConfig fields existed ran under, where that is
 not the field's default (the population was sampled every generation, the TD3 actor guided
-below mean − std, its target actor its own, β adapted before each block)."""
+below mean − std, its target actor its own)."""
 
 @dataclasses.dataclass(frozen=True)
 class PGPSConfig:
-    """Hyper-parameters of PGPS. Defaults are Table 3, and in the four places where the
-    paper's text and the authors' code differ the latter (`resample_before_q_filter`,
-    `beta_adapted`, `fell_behind_rule`, `target_actor_from_elite`); `for_task` applies
-    Table 4."""
+    """Hyper-parameters of PGPS. Defaults are Table 3, and in three of the four places where
+    the paper's text and the authors' code differ the latter (`resample_before_q_filter`,
+    `fell_behind_rule`, `target_actor_from_elite`; `beta_adapted` follows Algorithm 1);
+    `for_task` applies Table 4."""
 
     # --- CEM (Section 3, Table 3/4) ---
     pop_size: int = 10
@@ -108,10 +108,10 @@ class PGPSConfig:
     """D_target of the β rule (eq. 3)."""
     ss2_size: int = 512
     """SS_2: states drawn to measure D in each guided block."""
-    beta_adapted: str = "after_block"
-    """When a guided block adapts β (eq. 3): "after_block", from D after its updates on the
-    same SS_2 states, the new β weighting the next block (what the authors' code does);
-    "before_block", from D before its updates (Algorithm 1)."""
+    beta_adapted: str = "before_block"
+    """When a guided block adapts β (eq. 3): "before_block", from D before its updates
+    (Algorithm 1); "after_block", from D after its updates on the same SS_2 states, the new β
+    weighting the next block (what the authors' code does)."""
     fell_behind_rule: str = "mean"
     """When the TD3 actor fell behind (EA→PG): "mean", Return_TD3 < mean of the generation's
     returns (what the authors' code computes: its std is taken of a single return);

@@ -16,8 +16,8 @@ One generation (Algorithm 1, lines 6-37):
  4. TD3 trains for as many updates as the generation's env steps, in 5 blocks; if the TD3 actor
     fell behind (return < the population's mean, as the authors' code computes it; mean − std
     in Algorithm 1: `fell_behind_rule`), with the augmented loss toward the elite and an
-    adaptive β (EA→PG, eq. 2-3), adapted after each block's updates as in the authors' code
-    (before them in Algorithm 1: `beta_adapted`); its target actor first starts at the
+    adaptive β (EA→PG, eq. 2-3), adapted before each block's updates as in Algorithm 1
+    (after them in the authors' code: `beta_adapted`); its target actor first starts at the
     elite, as in the authors' code (`target_actor_from_elite`).
 
 The test evaluation (Section 5.1, `pgps_jax.agent.evaluation`) rides along in the population's
