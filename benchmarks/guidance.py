@@ -1,9 +1,10 @@
 """How EA→PG pulled the TD3 actor, read from a finished PGPS cell's files: per seed, in the
 generations before Q-filtering starts and in those after, the share whose elite fell at once
 (scored below `--fallen`), whose β ended at its upper bound (eq. 3) and in which the TD3
-actor was guided (it fell behind, Algorithm 1); the median of the TD3 actor's test returns
-from `--late-from` env steps on, μ's evaluation nearest `--at` env steps, and μ's final
-return.
+actor was guided (it fell behind, Algorithm 1); of those in which the TD3 actor played in the
+population (PG→EA), the share in which it fell at once and the share in which it was the
+elite; the median of the TD3 actor's test returns from `--late-from` env steps on, μ's
+evaluation nearest `--at` env steps, and μ's final return.
 
     python -m benchmarks.guidance \
         benchmarks/results/authors_code/figure4/walker2d/pgps \
@@ -37,18 +38,23 @@ def cell_config(cell: pathlib.Path) -> dict:
 def phase_shares(generations: list[dict], beta_max: float, fallen: float) -> dict:
     """Per phase (`PHASES`, by each generation's `q_filter_active`): the generations, and the
     shares whose elite scored below `fallen`, whose β ended at `beta_max` and that guided the
-    TD3 actor (None where the phase holds no generation)."""
+    TD3 actor; of the generations in which the TD3 actor played, the shares in which it scored
+    below `fallen` and in which it was the elite (None where there are no such generations)."""
+    def share(rows, test):
+        return float(np.mean([test(r) for r in rows])) if rows else None
+
     shares = {}
     for phase, active in zip(PHASES, (False, True)):
         rows = [r for r in generations if bool(float(r["q_filter_active"])) == active]
-
-        def share(test):
-            return float(np.mean([test(r) for r in rows])) if rows else None
-
-        shares[phase] = {"generations": len(rows),
-                         "elite_fallen": share(lambda r: float(r["elite_return"]) < fallen),
-                         "beta_at_bound": share(lambda r: float(r["beta"]) >= beta_max),
-                         "guided": share(lambda r: float(r["guided_loss"]) != 0.0)}
+        played = [r for r in rows if bool(float(r["td3_in_population"]))]
+        shares[phase] = {
+            "generations": len(rows),
+            "elite_fallen": share(rows, lambda r: float(r["elite_return"]) < fallen),
+            "beta_at_bound": share(rows, lambda r: float(r["beta"]) >= beta_max),
+            "guided": share(rows, lambda r: float(r["guided_loss"]) != 0.0),
+            "td3_fallen": share(played, lambda r: float(r["td3_return"]) < fallen),
+            "td3_elite": share(played,
+                               lambda r: float(r["td3_return"]) == float(r["elite_return"]))}
     return shares
 
 
@@ -86,9 +92,9 @@ def table(results: dict) -> str:
         return "–" if value is None else f"{value:,.0f}"
 
     lines = ["| cell | seed | generations before / after Q-filtering | elite fallen, before "
-             "| β at bound, before / after | guided, before / after | TD3 late median "
-             "| μ near `at` | final μ |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| β at bound, before / after | guided, before / after | TD3 actor fallen, before "
+             "| TD3 actor the elite, before | TD3 late median | μ near `at` | final μ |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for cell, entry in results.items():
         for seed, s in entry["seeds"].items():
             before, after = s[PHASES[0]], s[PHASES[1]]
@@ -97,6 +103,7 @@ def table(results: dict) -> str:
                 f"| {percent(before['elite_fallen'])} "
                 f"| {percent(before['beta_at_bound'])} / {percent(after['beta_at_bound'])} "
                 f"| {percent(before['guided'])} / {percent(after['guided'])} "
+                f"| {percent(before['td3_fallen'])} | {percent(before['td3_elite'])} "
                 f"| {number(s['td3_late_median'])} | {number(s['mu_near']['return'])} "
                 f"| {number(s['final_mu'])} |")
     return "\n".join(lines)
