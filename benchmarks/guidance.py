@@ -114,7 +114,7 @@ def main(argv=None) -> dict:
     parser.add_argument("cells", nargs="+", type=pathlib.Path,
                         help="finished PGPS cells' folders (<out>/<experiment>/<task>/<config>)")
     parser.add_argument("--fallen", type=float, default=50.0,
-                        help="an elite scoring below this fell at once (default 50)")
+                        help="an elite or TD3 actor scoring below this fell at once (default 50)")
     parser.add_argument("--late-from", type=float, default=500_000.0,
                         help="env steps from which the TD3 actor's returns count as late")
     parser.add_argument("--at", type=float, default=200_000.0,

@@ -319,6 +319,19 @@ def test_a_recorded_physics_from_before_matmul_precision_had_the_platform_s_prod
     runner._require_same(pathlib.Path("cell"), before, as_then, "hopper")
 
 
+def test_a_cell_from_before_beta_adapted_existed_adapted_beta_before_each_block():
+    """A cell saved before `beta_adapted` existed adapted β before each block (Algorithm 1),
+    today's default: it continues under it, not under the authors' order."""
+    now = runner._settings("pgps", for_task("hopper"), BUDGET, 1, make_env("hopper"))
+    before = {**now, "config": {k: v for k, v in now["config"].items() if k != "beta_adapted"}}
+    runner._require_same(pathlib.Path("cell"), before, now, "hopper")
+    after = runner._settings("pgps", for_task("hopper", beta_adapted="after_block"), BUDGET, 1,
+                             make_env("hopper"))
+    with pytest.raises(UsageError, match="config.beta_adapted: 'before_block' there, "
+                                         "'after_block' now"):
+        runner._require_same(pathlib.Path("cell"), before, after, "hopper")
+
+
 def test_a_recorded_physics_from_before_impl_ran_on_jax():
     """Physics recorded before `impl` existed ran on MJX's JAX implementation: the same as a
     cell run today on it, not as one on Warp."""

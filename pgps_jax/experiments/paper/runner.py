@@ -525,7 +525,7 @@ def _settings(algo: str, config, budget: Budget, devices: int, env) -> dict:
 
 _ADDED_SETTINGS = {"env": {}, "algo": "pgps"}
 """Settings that cells started before they existed ran under."""
-_ADDED_CONFIG_FIELDS = ("elitism", "policy_delay", "exploration_noise")
+_ADDED_CONFIG_FIELDS = ("elitism", "policy_delay", "exploration_noise", "beta_adapted")
 """PGPSConfig fields that cells started before they existed ran under at their defaults."""
 _PHYSICS_BEFORE_RECORDED = {"halfcheetah": {"iterations": 1}, "walker2d": {"iterations": 1},
                             "ant": {"iterations": 2, "ls_iterations": 4}}
