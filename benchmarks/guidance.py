@@ -1,5 +1,5 @@
 """How EA→PG pulled the TD3 actor, read from a finished PGPS cell's files: per seed, in the
-generations before Q-filtering starts and in those after, the share whose elite fell at once
+generations before Q-filtering starts and in those after (up to `--until` env steps), the share whose elite fell at once
 (scored below `--fallen`), whose β ended at its upper bound (eq. 3) and in which the TD3
 actor was guided (it fell behind, Algorithm 1); of those in which the TD3 actor played in the
 population (PG→EA), the share in which it fell at once and the share in which it was the
@@ -16,6 +16,7 @@ Writes `benchmarks/results/guidance.json` (keyed by cell folder) and prints one 
 import argparse
 import csv
 import pathlib
+from typing import Optional
 
 import numpy as np
 
@@ -64,22 +65,24 @@ def nearest_evaluation(steps: np.ndarray, returns: np.ndarray, at: float) -> dic
     return {"env_steps": float(steps[i]), "return": float(returns[i])}
 
 
-def measure(cell: pathlib.Path, fallen: float, late_from: float, at: float) -> dict:
-    """Per seed of the cell: `phase_shares`, the TD3 actor's median test return from
-    `late_from` on (None without such an evaluation), μ's evaluation nearest `at`, and μ's
-    final return."""
+def measure(cell: pathlib.Path, fallen: float, late_from: float, at: float,
+            until: Optional[float] = None) -> dict:
+    """Per seed of the cell: `phase_shares` of its generations up to `until` env steps (all
+    without it), the TD3 actor's median test return from `late_from` on (None without such an
+    evaluation), μ's evaluation nearest `at`, and μ's final return."""
     ran = cell_config(cell)
     seeds = {}
     for seed in seeds_in(cell):
         with open(cell / generations_file(seed), newline="") as f:
-            generations = list(csv.DictReader(f))
+            generations = [row for row in csv.DictReader(f)
+                           if until is None or float(row["env_steps"]) <= until]
         td3_steps, td3_returns = read_curve(cell / seed_file(seed, "td3"))
         late = td3_returns[td3_steps >= late_from]
         seeds[seed] = {**phase_shares(generations, ran["config"]["beta_max"], fallen),
                        "td3_late_median": float(np.median(late)) if late.size else None,
                        "mu_near": nearest_evaluation(*read_curve(cell / seed_file(seed)), at),
                        "final_mu": ran["final"].get(seed)}
-    return {"fallen": fallen, "late_from": late_from, "at": at, "seeds": seeds}
+    return {"fallen": fallen, "late_from": late_from, "at": at, "until": until, "seeds": seeds}
 
 
 def table(results: dict) -> str:
@@ -119,10 +122,13 @@ def main(argv=None) -> dict:
                         help="env steps from which the TD3 actor's returns count as late")
     parser.add_argument("--at", type=float, default=200_000.0,
                         help="env steps near which μ's evaluation is reported")
+    parser.add_argument("--until", type=float, default=None,
+                        help="count only the generations that end at or before these env steps")
     parser.add_argument("--out", type=pathlib.Path, default=OUT)
     args = parser.parse_args(argv)
     return measure_cells(parser, args.cells,
-                         lambda cell: measure(cell, args.fallen, args.late_from, args.at),
+                         lambda cell: measure(cell, args.fallen, args.late_from, args.at,
+                                              args.until),
                          table, args.out)
 
 

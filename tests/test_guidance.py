@@ -67,6 +67,16 @@ def test_measure_gives_each_phases_shares_and_the_seeds_returns(tmp_path):
     assert row == "| c | 1 | 4 / 2 | 75% | 75% / 50% | 50% / 50% | 67% | 33% | 5 | 20 | 1,234 |"
 
 
+def test_until_counts_only_the_generations_up_to_it(tmp_path):
+    cell = tmp_path / "figure4" / "walker2d" / "pgps"
+    _write_cell(cell)
+    seed = guidance.measure(cell, fallen=50.0, late_from=300.0, at=300.0, until=300)["seeds"][1]
+    assert seed["before_q_filter"] == {"generations": 3, "elite_fallen": 2 / 3,
+                                       "beta_at_bound": 2 / 3, "guided": 2 / 3,
+                                       "td3_fallen": 0.5, "td3_elite": 0.5}
+    assert seed["after_q_filter"]["generations"] == 0
+
+
 def test_a_seed_without_late_evaluations_or_generations_of_a_phase_reports_none(tmp_path):
     cell = tmp_path / "figure4" / "walker2d" / "pgps"
     _write_cell(cell)
