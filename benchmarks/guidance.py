@@ -1,9 +1,9 @@
 """How EA→PG pulled the TD3 actor, read from a finished PGPS cell's files: per seed, in the
-generations before Q-filtering starts and in those after (up to `--until` env steps), the share whose elite fell at once
-(scored below `--fallen`), whose β ended at its upper bound (eq. 3) and in which the TD3
-actor was guided (it fell behind, Algorithm 1); of those in which the TD3 actor played in the
-population (PG→EA), the share in which it fell at once and the share in which it was the
-elite; the median of the TD3 actor's test returns from `--late-from` env steps on, μ's
+generations before Q-filtering starts and in those after (up to `--until` env steps), the
+share whose elite fell at once (scored below `--fallen`), whose β ended at its upper bound
+(eq. 3) and in which the TD3 actor was guided (it fell behind, Algorithm 1); of those in
+which the TD3 actor played in the population (PG→EA), the share in which it fell at once and
+the share in which it was the elite; the median of the TD3 actor's test returns from `--late-from` env steps on, μ's
 evaluation nearest `--at` env steps, and μ's final return.
 
     python -m benchmarks.guidance \
