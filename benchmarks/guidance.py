@@ -3,8 +3,8 @@ generations before Q-filtering starts and in those after (up to `--until` env st
 share whose elite fell at once (scored below `--fallen`), whose β ended at its upper bound
 (eq. 3) and in which the TD3 actor was guided (it fell behind, Algorithm 1); of those in
 which the TD3 actor played in the population (PG→EA), the share in which it fell at once and
-the share in which it was the elite; the median of the TD3 actor's test returns from `--late-from` env steps on, μ's
-evaluation nearest `--at` env steps, and μ's final return.
+the share in which it was the elite; the median of the TD3 actor's test returns from
+`--late-from` env steps on, μ's evaluation nearest `--at` env steps, and μ's final return.
 
     python -m benchmarks.guidance \
         benchmarks/results/authors_code/figure4/walker2d/pgps \
