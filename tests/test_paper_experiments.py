@@ -332,6 +332,23 @@ def test_a_cell_from_before_beta_adapted_existed_adapted_beta_before_each_block(
         runner._require_same(pathlib.Path("cell"), before, after, "hopper")
 
 
+def test_a_cell_from_before_any_later_field_ran_it_as_it_was_then():
+    """A cell saved before later PGPSConfig fields existed ran them at their defaults, or at
+    their values then (`VALUES_BEFORE_ADDED`, e.g. the TD3 actor's own target actor): it
+    continues where today's configuration has those values, and is refused where it does not."""
+    from pgps_jax.agent.config import VALUES_BEFORE_ADDED
+    later = ("elitism", "update_unroll", "policy_delay", "beta_adapted")
+    now = runner._settings("pgps", for_task("hopper"), BUDGET, 1, make_env("hopper"))
+    before = {**now, "config": {k: v for k, v in now["config"].items()
+                                if k not in later and k not in VALUES_BEFORE_ADDED}}
+    as_then = runner._settings("pgps", for_task("hopper", **VALUES_BEFORE_ADDED), BUDGET, 1,
+                               make_env("hopper"))
+    runner._require_same(pathlib.Path("cell"), before, as_then, "hopper")
+    with pytest.raises(UsageError, match="config.target_actor_from_elite: False there, "
+                                         "True now"):
+        runner._require_same(pathlib.Path("cell"), before, now, "hopper")
+
+
 def test_a_recorded_physics_from_before_impl_ran_on_jax():
     """Physics recorded before `impl` existed ran on MJX's JAX implementation: the same as a
     cell run today on it, not as one on Warp."""

@@ -314,15 +314,22 @@ def effective_fields(fields: dict) -> dict:
     return {name: value for name, value in fields.items() if name not in dropped}
 
 
-def saved_fields_as_run(saved: dict, added_at_default: Tuple[str, ...] = ()) -> dict:
-    """The fields of a PGPSConfig saved by an earlier version as its run ran them: those it
-    lacks of `added_at_default` at their defaults and of `VALUES_BEFORE_ADDED` at those
-    values, then `effective_fields` (its own fields keep their order)."""
-    fields = dict(saved)
+def values_before_added() -> dict:
+    """Per PGPSConfig field, what a run saved before the field existed ran under: its default,
+    or its value then where that differs (`VALUES_BEFORE_ADDED`); tuples as lists, as saved."""
+    values = {}
     for f in dataclasses.fields(PGPSConfig):
-        if f.name in added_at_default:
-            fields.setdefault(f.name, f.default)
-    for name, value in VALUES_BEFORE_ADDED.items():
+        value = VALUES_BEFORE_ADDED.get(f.name, f.default)
+        values[f.name] = list(value) if isinstance(value, tuple) else value
+    return values
+
+
+def saved_fields_as_run(saved: dict) -> dict:
+    """The fields of a PGPSConfig saved by an earlier version as its run ran them: those it
+    lacks at `values_before_added`, then `effective_fields` (its own fields keep their
+    order)."""
+    fields = dict(saved)
+    for name, value in values_before_added().items():
         fields.setdefault(name, value)
     return effective_fields(fields)
 

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence
 
-from pgps_jax.agent.config import VALUES_BEFORE_ADDED, PGPSConfig, effective_fields
+from pgps_jax.agent.config import PGPSConfig, effective_fields, values_before_added
 from pgps_jax.cli import run_dir as rundir
 from pgps_jax.cli.errors import UsageError
 from pgps_jax.cli.run_config import (IDENTITY_KEYS, RunSettings, differences, explicitly_set,
@@ -62,16 +62,14 @@ def _require_budget_not_below(run: RunSettings, saved: dict, taken: int, step: i
 
 def _with_new_fields(saved: dict) -> dict:
     """A checkpoint's configuration with the settings added since it was written set to the
-    behaviour from before them: PGPS, the PGPSConfig fields' defaults, or their values
-    before they were added where the default differs (`VALUES_BEFORE_ADDED`; such a
-    checkpoint resumes by directory, or with resume=true and the old value set)."""
+    behaviour from before them: PGPS, and the PGPSConfig fields at `values_before_added`
+    (where that is not a field's default, such a checkpoint resumes by directory, or with
+    resume=true and the old value set)."""
     saved = copy.deepcopy(saved)
     saved.setdefault("algo", {"name": "pgps"})
-    defaults = {f.name: VALUES_BEFORE_ADDED.get(f.name, f.default)
-                for f in dataclasses.fields(PGPSConfig)}
     pgps = saved.setdefault("pgps", {})
-    for name, value in defaults.items():
-        pgps.setdefault(name, list(value) if isinstance(value, tuple) else value)
+    for name, value in values_before_added().items():
+        pgps.setdefault(name, value)
     return saved
 
 

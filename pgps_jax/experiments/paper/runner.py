@@ -525,8 +525,6 @@ def _settings(algo: str, config, budget: Budget, devices: int, env) -> dict:
 
 _ADDED_SETTINGS = {"env": {}, "algo": "pgps"}
 """Settings that cells started before they existed ran under."""
-_ADDED_CONFIG_FIELDS = ("elitism", "policy_delay", "exploration_noise", "beta_adapted")
-"""PGPSConfig fields that cells started before they existed ran under at their defaults."""
 _PHYSICS_BEFORE_RECORDED = {"halfcheetah": {"iterations": 1}, "walker2d": {"iterations": 1},
                             "ant": {"iterations": 2, "ls_iterations": 4}}
 """The fields in which a task's physics differed from today's when cells did not record it
@@ -576,7 +574,7 @@ def _require_same(directory: pathlib.Path, saved: dict, now: dict, task: str,
     ignored = {"config"} | ({"devices", "seeds"} if done else set())
     differ = [f"{key}: {saved.get(key)!r} there, {now[key]!r} now"
               for key in settings_differing(saved, now, "env", ignored)]
-    saved_config = saved_fields_as_run(saved["config"], _ADDED_CONFIG_FIELDS)
+    saved_config = saved_fields_as_run(saved["config"])
     differ += [f"config.{k}: {saved_config.get(k)!r} there, {v!r} now"
                for k, v in effective_fields(now["config"]).items()
                if saved_config.get(k) != v]
