@@ -337,7 +337,8 @@ def test_a_cell_from_before_any_later_field_ran_it_as_it_was_then():
     their values then (`VALUES_BEFORE_ADDED`, e.g. the TD3 actor's own target actor): it
     continues where today's configuration has those values, and is refused where it does not."""
     from pgps_jax.agent.config import VALUES_BEFORE_ADDED
-    later = ("elitism", "update_unroll", "policy_delay", "beta_adapted")
+    later = ("elitism", "policy_delay", "exploration_noise", "exploring_episodes",
+             "beta_adapted")
     now = runner._settings("pgps", for_task("hopper"), BUDGET, 1, make_env("hopper"))
     before = {**now, "config": {k: v for k, v in now["config"].items()
                                 if k not in later and k not in VALUES_BEFORE_ADDED}}
