@@ -334,8 +334,8 @@ def test_a_cell_from_before_beta_adapted_existed_adapted_beta_before_each_block(
 
 def test_a_cell_from_before_any_later_field_ran_it_as_it_was_then():
     """A cell saved before later PGPSConfig fields existed ran them at their defaults, or at
-    their values then (`VALUES_BEFORE_ADDED`, e.g. the TD3 actor's own target actor): it
-    continues where today's configuration has those values, and is refused where it does not."""
+    their values then (`VALUES_BEFORE_ADDED`, e.g. the guiding rule mean − std): it continues
+    where today's configuration has those values, and is refused where it does not."""
     from pgps_jax.agent.config import VALUES_BEFORE_ADDED
     later = ("elitism", "policy_delay", "exploration_noise", "exploring_episodes",
              "beta_adapted")
@@ -345,8 +345,8 @@ def test_a_cell_from_before_any_later_field_ran_it_as_it_was_then():
     as_then = runner._settings("pgps", for_task("hopper", **VALUES_BEFORE_ADDED), BUDGET, 1,
                                make_env("hopper"))
     runner._require_same(pathlib.Path("cell"), before, as_then, "hopper")
-    with pytest.raises(UsageError, match="config.target_actor_from_elite: False there, "
-                                         "True now"):
+    with pytest.raises(UsageError, match="config.fell_behind_rule: 'mean_minus_std' there, "
+                                         "'mean' now"):
         runner._require_same(pathlib.Path("cell"), before, now, "hopper")
 
 

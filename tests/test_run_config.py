@@ -197,21 +197,21 @@ def test_a_budget_within_the_warm_up_is_refused_before_anything_is_written(tmp_p
 
 
 def test_a_checkpoint_from_before_the_authors_details_resumes_as_it_ran():
-    """Runs saved before `resample_before_q_filter`, `fell_behind_rule` and
-    `target_actor_from_elite` existed sampled their population every generation, guided the
-    TD3 actor below mean − std and kept its own target actor; resumed, they go on doing so,
-    although the defaults are now the authors' code's; a field added with the behaviour from
-    before it (`beta_adapted`, `update_unroll`) takes its default."""
+    """Runs saved before `resample_before_q_filter` and `fell_behind_rule` existed sampled
+    their population every generation and guided the TD3 actor below mean − std; resumed,
+    they go on doing so, although the defaults are now the authors' code's; a field added
+    with the behaviour from before it (`beta_adapted`, `target_actor_from_elite`,
+    `update_unroll`) takes its default."""
     from pgps_jax.cli.plan import _with_new_fields
     completed = _with_new_fields({"algo": {"name": "pgps"}, "pgps": {"pop_size": 6}})["pgps"]
-    before = dict(resample_before_q_filter=True, fell_behind_rule="mean_minus_std",
-                  target_actor_from_elite=False)
+    before = dict(resample_before_q_filter=True, fell_behind_rule="mean_minus_std")
     for name, value in before.items():
         assert completed[name] == value
         assert getattr(PGPSConfig(), name) != value
     assert completed["pop_size"] == 6
     assert completed["update_unroll"] == PGPSConfig().update_unroll
     assert completed["beta_adapted"] == PGPSConfig().beta_adapted == "before_block"
+    assert completed["target_actor_from_elite"] is PGPSConfig().target_actor_from_elite is False
 
 
 def test_a_switch_without_effect_does_not_stop_a_checkpoint_from_resuming():

@@ -94,10 +94,10 @@ def test_lagging_returns_fall_behind_however_the_others_spread():
 @pytest.mark.parametrize("couplings,overrides", [
     (dict(), dict()),
     (dict(pg_guides_ea=False, ea_guides_pg=False, q_filter=False), dict()),
-    (dict(), dict(target_actor_from_elite=False))])
+    (dict(), dict(target_actor_from_elite=True))])
 def test_each_part_alone_computes_what_the_generation_computed_in_it(couplings, overrides):
-    """The full model (Q-filtered, the TD3 actor injected and guided, its target actor reset
-    to the elite), the Base model, and the full model with the TD3 target actor its own."""
+    """The full model (Q-filtered, the TD3 actor injected and guided), the Base model, and the
+    full model with the TD3 target actor reset to the elite before the updates."""
     agent, state = point_pgps(pop_size=4, **overrides)
     state = model_state(agent, state, **couplings)
     after, metrics, played = jitted_generation(agent)(state)

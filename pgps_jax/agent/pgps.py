@@ -17,8 +17,8 @@ One generation (Algorithm 1, lines 6-37):
     fell behind (return < the population's mean, as the authors' code computes it; mean − std
     in Algorithm 1: `fell_behind_rule`), with the augmented loss toward the elite and an
     adaptive β (EA→PG, eq. 2-3), adapted before each block's updates as in Algorithm 1
-    (after them in the authors' code: `beta_adapted`); its target actor first starts at the
-    elite, as in the authors' code (`target_actor_from_elite`).
+    (after them in the authors' code: `beta_adapted`); its target actor follows it alone, as
+    in Algorithm 3 (the authors' code first sets it to the elite: `target_actor_from_elite`).
 
 The test evaluation (Section 5.1, `pgps_jax.agent.evaluation`) rides along in the population's
 rollouts: when it falls due, the generation snapshots μ, the TD3 actor and the elite and their
