@@ -21,9 +21,9 @@ ALGORITHMS = ("pgps", "cem", "td3", "cemrl")
 VALUES_BEFORE_ADDED = {"resample_before_q_filter": True, "fell_behind_rule": "mean_minus_std"}
 """The values that runs saved before these PGPSConfig fields existed ran under, where that is
 not the field's default (the population was sampled every generation, the TD3 actor guided
-below mean − std). Every other field a saved run lacks counts as
-having run at its default (`values_before_added`), so a field added later whose default is
-not the behaviour from before it must be listed here."""
+below mean − std). Every other field a saved run lacks counts as having run at its default
+(`values_before_added`), so a field added later whose default is not the behaviour from
+before it must be listed here."""
 
 @dataclasses.dataclass(frozen=True)
 class PGPSConfig:
