@@ -338,7 +338,7 @@ def test_a_cell_from_before_any_later_field_ran_it_as_it_was_then():
     where today's configuration has those values, and is refused where it does not."""
     from pgps_jax.agent.config import VALUES_BEFORE_ADDED
     later = ("elitism", "policy_delay", "exploration_noise", "exploring_episodes",
-             "beta_adapted")
+             "beta_adapted", "target_actor_from_elite")
     now = runner._settings("pgps", for_task("hopper"), BUDGET, 1, make_env("hopper"))
     before = {**now, "config": {k: v for k, v in now["config"].items()
                                 if k not in later and k not in VALUES_BEFORE_ADDED}}
@@ -348,6 +348,12 @@ def test_a_cell_from_before_any_later_field_ran_it_as_it_was_then():
     with pytest.raises(UsageError, match="config.fell_behind_rule: 'mean_minus_std' there, "
                                          "'mean' now"):
         runner._require_same(pathlib.Path("cell"), before, now, "hopper")
+    from_elite = runner._settings("pgps", for_task("hopper", **VALUES_BEFORE_ADDED,
+                                                   target_actor_from_elite=True), BUDGET, 1,
+                                  make_env("hopper"))
+    with pytest.raises(UsageError, match="config.target_actor_from_elite: False there, "
+                                         "True now"):
+        runner._require_same(pathlib.Path("cell"), before, from_elite, "hopper")
 
 
 def test_a_recorded_physics_from_before_impl_ran_on_jax():

@@ -199,8 +199,8 @@ def test_a_budget_within_the_warm_up_is_refused_before_anything_is_written(tmp_p
 def test_a_checkpoint_from_before_the_authors_details_resumes_as_it_ran():
     """Runs saved before `resample_before_q_filter` and `fell_behind_rule` existed sampled
     their population every generation and guided the TD3 actor below mean − std; resumed,
-    they go on doing so, although the defaults are now the authors' code's; a field added
-    with the behaviour from before it (`beta_adapted`, `target_actor_from_elite`,
+    they go on doing so, although the defaults are now the authors' code's; a field whose
+    default is the behaviour from before it (`beta_adapted`, `target_actor_from_elite`,
     `update_unroll`) takes its default."""
     from pgps_jax.cli.plan import _with_new_fields
     completed = _with_new_fields({"algo": {"name": "pgps"}, "pgps": {"pop_size": 6}})["pgps"]
